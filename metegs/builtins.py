@@ -1,0 +1,22 @@
+"""Registration of metegs' built-in components (as lazy "module:attribute" strings: nothing is imported here)."""
+
+from metegs.registry import registry
+
+_parsers = registry("parser")
+_parsers.register("colmap", "metegs.data.parsers.colmap:ColmapParser", description="COLMAP sparse model (binary or text), through pycolmap")
+_parsers.register("nerfstudio", "metegs.data.parsers.nerfstudio:NerfstudioParser", description="nerfstudio transforms.json")
+_parsers.register("llff", "metegs.data.parsers.llff:LLFFParser", description="LLFF poses_bounds.npy + images*/")
+_parsers.register("blender", "metegs.data.parsers.blender:BlenderParser", description="Blender/NeRF-synthetic transforms_{train,val,test}.json")
+_parsers.register("synthetic", "metegs.data.parsers.synthetic:SyntheticParser", description="procedural ray-cast scene in metres (the default)")
+
+_raster = registry("rasterizer")
+_raster.register("torch", "metegs.render.torch_backend:TorchRasterizer", description="vectorised PyTorch reference (any device)")
+
+_densify = registry("densifier")
+_densify.register("adc", "metegs.densify.adc:AdaptiveDensityControl", description="3DGS adaptive density control (clone/split/prune/reset)")
+
+_losses = registry("loss")
+_losses.register("photometric", "metegs.losses.photometric:PhotometricLoss", description="(1-λ)·L1 + λ·(1-SSIM)")
+
+_methods = registry("method")
+_methods.register("3dgs", "metegs.methods:gaussian_splatting", description="plain 3D Gaussian Splatting (0.8·L1 + 0.2·D-SSIM)")

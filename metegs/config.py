@@ -1,0 +1,152 @@
+"""Config base (nerfstudio pattern: ``_target`` + ``setup()``) and safe YAML save/load of config trees."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import tempfile
+import types
+import typing
+from pathlib import Path
+from typing import Any, TypeVar
+
+import yaml
+
+from metegs.errors import ConfigError
+
+C = TypeVar("C")
+
+
+@dataclasses.dataclass
+class InstantiateConfig:
+    """A config that builds the object it describes: ``config.setup(**kwargs) -> _target(config, **kwargs)``."""
+
+    def setup(self, **kwargs: Any) -> Any:
+        target = getattr(self, "_target", None)
+        if target is None:
+            raise ConfigError(f"{type(self).__name__} has no _target to set up")
+        if isinstance(target, str):
+            from metegs.registry import Entry
+
+            target = Entry(type(self).__name__, target).load()
+        return target(self, **kwargs)
+
+
+def to_dict(config: Any) -> Any:
+    """A config tree as plain YAML-safe data (paths as strings, tuples as lists); private fields dropped."""
+    if dataclasses.is_dataclass(config) and not isinstance(config, type):
+        return {
+            f.name: to_dict(getattr(config, f.name))
+            for f in dataclasses.fields(config)
+            if not f.name.startswith("_")
+        }
+    if isinstance(config, dict):
+        return {str(k): to_dict(v) for k, v in config.items()}
+    if isinstance(config, (list, tuple)):
+        return [to_dict(v) for v in config]
+    if isinstance(config, Path):
+        return str(config)
+    return config
+
+
+def _coerce(value: Any, annotation: Any, where: str) -> Any:
+    origin = typing.get_origin(annotation)
+    args = typing.get_args(annotation)
+    if annotation is Any or annotation is None:
+        return value
+    if origin is typing.Annotated:
+        return _coerce(value, args[0], where)
+    if origin in (typing.Union, types.UnionType):
+        if value is None and type(None) in args:
+            return None
+        errors = []
+        for arg in args:
+            if arg is type(None):
+                continue
+            try:
+                return _coerce(value, arg, where)
+            except ConfigError as exc:
+                errors.append(str(exc))
+        raise ConfigError(f"{where}: {value!r} matches none of {annotation}")
+    if origin is typing.Literal:
+        if value not in args:
+            raise ConfigError(f"{where}: {value!r} is not one of {args}")
+        return value
+    if origin in (tuple, list):
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{where}: expected a list, got {value!r}")
+        if origin is tuple and args and args[-1] is not Ellipsis:
+            if len(args) != len(value):
+                raise ConfigError(f"{where}: expected {len(args)} values, got {len(value)}")
+            return tuple(_coerce(v, a, where) for v, a in zip(value, args))
+        inner = args[0] if args else Any
+        seq = [_coerce(v, inner, where) for v in value]
+        return tuple(seq) if origin is tuple else seq
+    if origin is dict:
+        return dict(value)
+    if dataclasses.is_dataclass(annotation):
+        return value
+    if annotation is Path:
+        return Path(value)
+    if annotation is float and isinstance(value, (int, float)) and not isinstance(value, bool):
+        return float(value)
+    if annotation is int and isinstance(value, bool):
+        raise ConfigError(f"{where}: expected an integer, got {value!r}")
+    if isinstance(annotation, type) and not isinstance(value, annotation):
+        raise ConfigError(f"{where}: expected {annotation.__name__}, got {value!r}")
+    return value
+
+
+def apply_overrides(config: C, overrides: dict[str, Any], where: str = "") -> C:
+    """A copy of ``config`` with the values of a nested dict applied; unknown keys are an error."""
+    if not isinstance(overrides, dict):
+        raise ConfigError(f"{where or 'config'}: expected a mapping, got {overrides!r}")
+    hints = typing.get_type_hints(type(config), include_extras=True)
+    names = {f.name for f in dataclasses.fields(config) if not f.name.startswith("_")}
+    changes = {}
+    for key, value in overrides.items():
+        key = key.replace("-", "_")
+        path = f"{where}.{key}" if where else key
+        if key not in names:
+            raise ConfigError(f"unknown config field {path!r}; fields here: {', '.join(sorted(names))}")
+        current = getattr(config, key)
+        if dataclasses.is_dataclass(current) and isinstance(value, dict):
+            changes[key] = apply_overrides(current, value, path)
+        else:
+            changes[key] = _coerce(value, hints[key], path)
+    return dataclasses.replace(config, **changes)
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` through a temp file and a rename, so a crash never leaves half a file."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def save_yaml(config: Any, path: Path, header: dict[str, Any] | None = None) -> None:
+    """Save a config tree as readable YAML (safe types only), atomically."""
+    data = dict(header or {})
+    data.update(to_dict(config))
+    atomic_write_text(Path(path), yaml.safe_dump(data, sort_keys=False))
+
+
+def load_yaml(path: Path) -> dict[str, Any]:
+    """Read a YAML mapping with the safe loader; a clear error names the file on failure."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"{path}: config file not found")
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path}: not valid YAML: {exc}") from exc
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a mapping of config fields at the top level")
+    return data

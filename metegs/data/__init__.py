@@ -1,0 +1,1 @@
+"""Data: scene descriptions from parsers, image loading and the training dataset."""

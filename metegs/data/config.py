@@ -1,0 +1,39 @@
+"""Options shared by the data parsers and the dataset (the `--dataset.*` flags)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+
+@dataclass
+class SyntheticSceneConfig:
+    """The procedural default scene: ray-cast analytic textured primitives in metres."""
+
+    width: int = 160
+    """Image width in pixels."""
+    height: int = 120
+    """Image height in pixels."""
+    num_views: int = 48
+    """Number of views on the camera orbit (every 8th is a test view)."""
+    seed: int = 0
+    """Seed of the scene layout, textures and camera jitter."""
+    num_points: int = 4000
+    """Number of coloured surface points sampled for initialisation (like SfM points)."""
+
+
+@dataclass
+class DatasetConfig:
+    """How views are read, scaled and split."""
+
+    downscale: float | None = None
+    """Image downscale factor; None picks the smallest power of two bringing the longer side to at most `auto-max-side`."""
+    auto_max_side: int = 160
+    """Longest image side (px) targeted when `downscale` is None (keeps CPU training interactive)."""
+    test_every: int = 8
+    """Every n-th view is held out for testing when the format has no explicit split (0: no test views)."""
+    undistort: bool = True
+    """Undistort COLMAP views with distorted camera models (else they are refused with an error)."""
+    use_masks: bool = False
+    """Composite masked-out pixels to the background colour when the scene ships masks."""
+    synthetic: SyntheticSceneConfig = field(default_factory=SyntheticSceneConfig)
+    """Options of the synthetic scene used when no `--data` is given."""

@@ -1,0 +1,1 @@
+"""Data parsers: every format becomes one `SceneData` (see `base.parse_scene`)."""

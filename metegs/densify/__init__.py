@@ -1,0 +1,1 @@
+"""Densification strategies (registry kind ``densifier``); they see scene Gaussians only."""

@@ -1,0 +1,1 @@
+"""Training engine: optimisers, the trainer loop and checkpoints."""

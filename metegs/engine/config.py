@@ -1,0 +1,92 @@
+"""The complete configuration of a training run: what `metegs-train <method>` builds and saves as config.yml."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import tyro
+
+from metegs.config import InstantiateConfig
+from metegs.data.config import DatasetConfig
+from metegs.densify.adc import ADCConfig
+from metegs.engine.optim import OptimConfig
+from metegs.losses.photometric import PhotometricLossConfig
+
+
+@dataclass
+class ModelConfig:
+    """The scene Gaussians: SH degree and initialisation."""
+
+    sh_degree: int = 3
+    """Maximum SH degree (raised by one every `sh-degree-every` of the run)."""
+    sh_degree_every: float = 1000 / 30000
+    """Fraction of the run between SH degree increments (1000 of 30k steps in 3DGS)."""
+    init_opacity: float = 0.1
+    """Opacity of the initial Gaussians."""
+    init_scale_multiplier: float = 1.0
+    """Multiplier of the initial scales (mean distance to the 3 nearest points)."""
+    init_random_points: int = 20000
+    """Number of random initial Gaussians when the scene has no points (placed where training views overlap)."""
+    random_init: bool = False
+    """Ignore the scene's points and start from random Gaussians."""
+
+
+@dataclass
+class TrainConfig(InstantiateConfig):
+    """A training run. Top-level flags are shared by every method."""
+
+    _target: type = field(default_factory=lambda: _trainer_class(), repr=False)
+    method: tyro.conf.Suppress[str] = "3dgs"
+    """Registry name of the method this config came from."""
+    data: Path | None = None
+    """Scene folder (format detected from its contents); None uses the built-in synthetic scene."""
+    parser: str | None = None
+    """Force a data parser by registry name (e.g. colmap, nerfstudio, llff, blender, synthetic)."""
+    output_dir: Path = Path("outputs")
+    """Runs are written to <output-dir>/<scene>/<method>/<experiment-name>/."""
+    experiment_name: str | None = None
+    """Name of the run folder; None uses a timestamp."""
+    max_steps: int = 3000
+    """Number of training steps (one view per step)."""
+    seed: int = 0
+    """Seed of every random choice (initialisation, view order, densification)."""
+    backend: str = "auto"
+    """Rasteriser backend: auto, torch, or another registered one (auto: the fastest available)."""
+    device: str = "auto"
+    """Torch device: auto (cuda if available, else cpu), cpu, cuda, cuda:1, ..."""
+    threads: int = 0
+    """CPU threads for torch (0: torch's default)."""
+    load_checkpoint: Path | None = None
+    """Resume from this checkpoint file (.ckpt) of an earlier run."""
+    background: Literal["black", "white", "random"] = "black"
+    """Background colour behind the Gaussians during training (evaluation uses black, or white for 'white')."""
+    eval_every: float = 0.25
+    """Evaluate the test views every this fraction of the run (0: only at the end)."""
+    checkpoint_every: int = 1000
+    """Save a checkpoint every this many steps (0: only at the end)."""
+    save_renders: bool = True
+    """Save test-view renders as PNG at the end."""
+    lpips_net: Literal["alex", "vgg"] = "alex"
+    """Backbone of the LPIPS metric (weights from the torch hub cache or METEGS_LPIPS_BACKBONE)."""
+    lpips_download: bool = False
+    """Allow downloading the LPIPS backbone weights into the torch hub cache when missing."""
+    progress: bool = True
+    """Show a live progress bar."""
+    dataset: DatasetConfig = field(default_factory=DatasetConfig)
+    """How views are read, scaled and split."""
+    model: ModelConfig = field(default_factory=ModelConfig)
+    """Scene Gaussians."""
+    optim: OptimConfig = field(default_factory=OptimConfig)
+    """Learning rates."""
+    densify: ADCConfig = field(default_factory=ADCConfig)
+    """Densification."""
+    loss: PhotometricLossConfig = field(default_factory=PhotometricLossConfig)
+    """Photometric loss."""
+
+
+def _trainer_class():
+    from metegs.engine.trainer import Trainer
+
+    return Trainer

@@ -1,0 +1,84 @@
+"""One Adam per parameter group (gsplat style) and the in-place edits densification makes to them."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import torch
+from torch import nn
+
+
+@dataclass
+class OptimConfig:
+    """Learning rates of the 3DGS reference (INRIA), per parameter group."""
+
+    means_lr: float = 1.6e-4
+    """Initial position learning rate, multiplied by the scene extent."""
+    means_lr_final: float = 1.6e-6
+    """Final position learning rate (exponential decay over the run), multiplied by the scene extent."""
+    sh0_lr: float = 2.5e-3
+    """Learning rate of the SH DC colour."""
+    shN_lr: float = 2.5e-3 / 20
+    """Learning rate of the higher SH coefficients."""
+    opacities_lr: float = 0.05
+    """Learning rate of the opacity logits (0.025 in the Oct-2024 INRIA update)."""
+    scales_lr: float = 5e-3
+    """Learning rate of the log-scales."""
+    quats_lr: float = 1e-3
+    """Learning rate of the rotations."""
+    eps: float = 1e-15
+    """Adam epsilon."""
+
+
+def make_optimizers(params: nn.ParameterDict, cfg: OptimConfig, extent: float) -> dict[str, torch.optim.Adam]:
+    """One single-group Adam per parameter; the position rate scales with the scene ``extent``."""
+    lrs = {
+        "means": cfg.means_lr * extent, "sh0": cfg.sh0_lr, "shN": cfg.shN_lr,
+        "opacities": cfg.opacities_lr, "scales": cfg.scales_lr, "quats": cfg.quats_lr,
+    }
+    return {name: torch.optim.Adam([params[name]], lr=lrs[name], eps=cfg.eps) for name in params.keys()}
+
+
+def means_lr_at(step: int, max_steps: int, cfg: OptimConfig, extent: float) -> float:
+    """Log-linear decay of the position learning rate from ``means_lr`` to ``means_lr_final``."""
+    t = min(max(step / max(max_steps, 1), 0.0), 1.0)
+    return extent * float(cfg.means_lr ** (1 - t) * cfg.means_lr_final**t)
+
+
+@torch.no_grad()
+def update_params(
+    params: nn.ParameterDict,
+    optimizers: dict[str, torch.optim.Optimizer],
+    param_fn: Callable[[str, torch.Tensor], torch.Tensor],
+    state_fn: Callable[[str, torch.Tensor], torch.Tensor],
+) -> None:
+    """Replace every parameter by ``param_fn(name, p)`` and every per-element optimiser state tensor
+    (Adam moments) by ``state_fn(key, v)``, keeping optimisers pointing at the new parameters."""
+    for name in list(params.keys()):
+        old = params[name]
+        new = nn.Parameter(param_fn(name, old.data).contiguous(), requires_grad=old.requires_grad)
+        params[name] = new
+        opt = optimizers[name]
+        state = opt.state.pop(old, None)
+        opt.param_groups[0]["params"] = [new]
+        if state is not None:
+            for key, value in state.items():
+                if key != "step" and torch.is_tensor(value) and value.dim() > 0:
+                    state[key] = state_fn(key, value)
+            opt.state[new] = state
+
+
+def select_rows(params, optimizers, keep: torch.Tensor) -> None:
+    """Keep only the rows where ``keep`` [N] is True, in parameters and Adam moments."""
+    update_params(params, optimizers, lambda _, p: p[keep], lambda _, v: v[keep])
+
+
+def append_rows(params, optimizers, new: dict[str, torch.Tensor]) -> None:
+    """Append new rows (one tensor per parameter name); their Adam moments start at zero."""
+    update_params(
+        params,
+        optimizers,
+        lambda name, p: torch.cat([p, new[name].to(p)]),
+        lambda _, v: torch.cat([v, v.new_zeros((next(iter(new.values())).shape[0], *v.shape[1:]))]),
+    )

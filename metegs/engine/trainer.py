@@ -1,0 +1,248 @@
+"""The trainer: sets a run up from a `TrainConfig`, optimises, evaluates and writes the run folder."""
+
+from __future__ import annotations
+
+import json
+import random
+import time
+from dataclasses import replace
+from datetime import datetime
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from metegs import __version__
+from metegs.config import atomic_write_text, save_yaml
+from metegs.data.dataset import Dataset
+from metegs.data.parsers.base import parse_scene
+from metegs.engine.checkpoint import load_checkpoint, save_checkpoint
+from metegs.engine.config import TrainConfig
+from metegs.engine.init import random_points_in_view_overlap, scene_extent
+from metegs.engine.optim import make_optimizers, means_lr_at
+from metegs.engine.progress import TrainProgress
+from metegs.errors import ConfigError
+from metegs.gaussians.model import GaussianModel
+from metegs.render import RenderSettings, make_rasterizer
+from metegs.render.select import resolve_backend
+
+
+def resolve_device(name: str) -> torch.device:
+    """``auto`` -> cuda if available else cpu; an unavailable CUDA device is a clear error."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    device = torch.device(name)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ConfigError(f"--device {name}: CUDA is not available on this machine (use --device cpu)")
+    return device
+
+
+def seed_everything(seed: int) -> None:
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
+class Trainer:
+    """Plain 3DGS training of scene Gaussians on the training views."""
+
+    def __init__(self, config: TrainConfig, run_dir: Path | None = None, console=None):
+        self.device = resolve_device(config.device)
+        backend = resolve_backend(config.backend, self.device)
+        self.config = replace(config, backend=backend, device=str(self.device))
+        if config.threads > 0:
+            torch.set_num_threads(config.threads)
+        self.console = console
+        seed_everything(config.seed)
+        self.scene = parse_scene(config.data, config.parser, config.dataset)
+        self.dataset = Dataset(self.scene, config.dataset, device=self.device)
+        if not self.dataset.train_indices:
+            raise ConfigError("the scene has no training views")
+        self.rasterizer = make_rasterizer(backend, self.device)
+        self.extent = scene_extent(self.dataset.cameras[self.dataset.train_indices])
+        self.model = self._initial_model()
+        self.optimizers = make_optimizers(self.model.params, config.optim, self.extent)
+        self.densifier = config.densify.setup(max_steps=config.max_steps, extent=self.extent)
+        self.loss_fn = config.loss.setup()
+        self.step = 0
+        self.history: list[dict] = []
+        self.train_seconds = 0.0
+        self.run_dir = Path(run_dir) if run_dir is not None else self._default_run_dir()
+        if config.load_checkpoint is not None:
+            self.load(config.load_checkpoint)
+
+    # --- setup -------------------------------------------------------------------------------------
+    def _default_run_dir(self) -> Path:
+        c = self.config
+        scene_name = Path(c.data).resolve().name if c.data is not None else "synthetic"
+        name = c.experiment_name or datetime.now().strftime("%Y-%m-%d_%H%M%S")
+        return Path(c.output_dir) / scene_name / c.method / name
+
+    def _initial_model(self) -> GaussianModel:
+        mc = self.config.model
+        points, colors = self.scene.points, self.scene.point_colors
+        if points is None or len(points) == 0 or mc.random_init:
+            train_cams = self.dataset.cameras[self.dataset.train_indices]
+            points = random_points_in_view_overlap(train_cams, mc.init_random_points, seed=self.config.seed)
+            colors = np.random.default_rng(self.config.seed).random((len(points), 3), dtype=np.float32)
+        return GaussianModel.from_points(
+            points, colors, sh_degree=mc.sh_degree, init_opacity=mc.init_opacity,
+            scale_multiplier=mc.init_scale_multiplier, device=self.device,
+        )
+
+    # --- one step ----------------------------------------------------------------------------------
+    def background(self, training: bool) -> torch.Tensor:
+        bg = self.config.background
+        if bg == "random" and training:
+            return torch.rand(3, device=self.device)
+        return torch.ones(3, device=self.device) if bg == "white" else torch.zeros(3, device=self.device)
+
+    def sh_degree_at(self, step: int) -> int:
+        every = max(1, int(round(self.config.model.sh_degree_every * self.config.max_steps)))
+        return min(step // every, self.model.max_sh_degree)
+
+    def render(self, index: int, training: bool = False):
+        """Render dataset view ``index`` with the current model."""
+        settings = RenderSettings(background=self.background(training), sh_degree=self.model.active_sh_degree)
+        return self.rasterizer.render(self.model.activated(), self.dataset.cameras[index], settings)
+
+    def train_step(self, index: int) -> dict[str, float]:
+        """Render one training view, backpropagate, update the parameters and densify on schedule."""
+        self.model.active_sh_degree = self.sh_degree_at(self.step)
+        self.optimizers["means"].param_groups[0]["lr"] = means_lr_at(
+            self.step, self.config.max_steps, self.config.optim, self.extent
+        )
+        out = self.render(index, training=True)
+        target = self.dataset.images[index]
+        loss = self.loss_fn(out.rgb, target)
+        loss.backward()
+        self.densifier.update_stats(self.model, out)
+        for opt in self.optimizers.values():
+            opt.step()
+            opt.zero_grad(set_to_none=True)
+        changes = self.densifier.step(self.model, self.optimizers, self.step)
+        with torch.no_grad():
+            mse = float(((out.rgb.clamp(0, 1) - target) ** 2).mean())
+        return {"loss": float(loss), "psnr": -10 * np.log10(max(mse, 1e-10)), **changes}
+
+    # --- the loop ----------------------------------------------------------------------------------
+    def train(self) -> dict:
+        """Run to ``max_steps``, evaluating and checkpointing on schedule; returns the final metrics."""
+        c = self.config
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        save_yaml(c, self.run_dir / "config.yml", header={"metegs_version": __version__})
+        eval_every = int(round(c.eval_every * c.max_steps)) if c.eval_every > 0 else 0
+        order = self._view_order()
+        with TrainProgress(c.max_steps, start=self.step, enabled=c.progress, console=self.console) as progress:
+            while self.step < c.max_steps:
+                t0 = time.perf_counter()
+                stats = self.train_step(next(order))
+                self.train_seconds += time.perf_counter() - t0
+                self.step += 1
+                progress.update(self.step, stats, len(self.model))
+                if eval_every and self.step % eval_every == 0 and self.step < c.max_steps:
+                    self.record_eval(quick=True)
+                if c.checkpoint_every and self.step % c.checkpoint_every == 0:
+                    self.save()
+        self.save()
+        return self.finish()
+
+    def _view_order(self):
+        rng = np.random.default_rng(self.config.seed + self.step)
+        while True:
+            yield from rng.permutation(self.dataset.train_indices).tolist()
+
+    # --- evaluation and outputs --------------------------------------------------------------------
+    @torch.no_grad()
+    def render_views(self, indices: list[int]) -> list[torch.Tensor]:
+        return [self.render(i).rgb.clamp(0, 1) for i in indices]
+
+    def record_eval(self, quick: bool) -> dict:
+        """Evaluate the test views (PSNR/SSIM; LPIPS too unless ``quick``) and append to the history."""
+        from metegs.eval.metrics import evaluate_images
+
+        idx = self.dataset.test_indices or self.dataset.train_indices
+        preds = self.render_views(idx)
+        lpips_model, reason = (None, "skipped during training") if quick else self._lpips()
+        m = evaluate_images(preds, [self.dataset.images[i] for i in idx], lpips_model=lpips_model, lpips_reason=reason)
+        entry = {"step": self.step, "train_seconds": round(self.train_seconds, 3), "num_gaussians": len(self.model),
+                 "psnr": m["psnr"], "ssim": m["ssim"]}
+        self.history.append(entry)
+        return m
+
+    def _lpips(self):
+        from metegs.eval.lpips import try_load_lpips
+
+        return try_load_lpips(self.config.lpips_net, allow_download=self.config.lpips_download, device=self.device)
+
+    def finish(self) -> dict:
+        """Final evaluation; writes metrics.json, test renders and scene.ply. Returns the metrics."""
+        from metegs.gaussians.ply import save_ply
+
+        m = self.record_eval(quick=False)
+        idx = self.dataset.test_indices or self.dataset.train_indices
+        split = "test" if self.dataset.test_indices else "train"
+        if self.config.save_renders:
+            self.save_renders(idx, split)
+        save_ply(self.model, self.run_dir / "scene.ply", comments=self._ply_comments())
+        metrics = {
+            "method": self.config.method,
+            "scene": str(self.config.data or "synthetic"),
+            "backend": self.config.backend,
+            "device": str(self.device),
+            "split": split,
+            "num_views": len(idx),
+            "psnr": m["psnr"],
+            "ssim": m["ssim"],
+            "lpips": m["lpips"],
+            "lpips_net": m.get("lpips_net"),
+            "lpips_reason": m.get("lpips_reason"),
+            "num_gaussians": len(self.model),
+            "steps": self.step,
+            "train_seconds": round(self.train_seconds, 2),
+            "image_size": [int(self.dataset.cameras.width[0]), int(self.dataset.cameras.height[0])],
+            "per_view": m.get("per_view"),
+            "history": self.history,
+        }
+        atomic_write_text(self.run_dir / "metrics.json", json.dumps(metrics, indent=2))
+        return metrics
+
+    def _ply_comments(self) -> list[str]:
+        up = self.scene.up
+        axis = "xyz"[int(np.argmax(np.abs(up)))]
+        return [f"Vertical Axis: {axis}", "SplatRenderMode: default"]
+
+    def save_renders(self, indices: list[int], split: str) -> None:
+        from metegs.data.images import save_image
+
+        folder = self.run_dir / "renders" / split
+        for i, img in zip(indices, self.render_views(indices)):
+            name = Path(self.dataset.names[i]).stem
+            save_image(folder / f"{name}.png", img)
+            save_image(folder / f"{name}_gt.png", self.dataset.images[i])
+
+    # --- checkpoints -------------------------------------------------------------------------------
+    def save(self) -> Path:
+        payload = {
+            "step": self.step,
+            "params": self.model.state_tensors(),
+            "sh_degree": self.model.max_sh_degree,
+            "optimizers": {k: o.state_dict() for k, o in self.optimizers.items()},
+            "densifier": self.densifier.state_dict(),
+            "history": self.history,
+            "train_seconds": self.train_seconds,
+            "metegs_version": __version__,
+        }
+        return save_checkpoint(self.run_dir / "checkpoints" / f"step-{self.step:06d}.ckpt", payload)
+
+    def load(self, path: Path) -> None:
+        """Resume from a checkpoint: parameters (any count), optimiser moments, statistics, step."""
+        ckpt = load_checkpoint(path, self.device)
+        self.model = GaussianModel.from_state(ckpt["params"], ckpt["sh_degree"]).to(self.device)
+        self.optimizers = make_optimizers(self.model.params, self.config.optim, self.extent)
+        for k, o in self.optimizers.items():
+            o.load_state_dict(ckpt["optimizers"][k])
+        self.densifier.load_state_dict(ckpt.get("densifier", {}))
+        self.step = int(ckpt["step"])
+        self.history = list(ckpt.get("history", []))
+        self.train_seconds = float(ckpt.get("train_seconds", 0.0))

@@ -1,0 +1,459 @@
+"""LPIPS v0.1 (Zhang et al. 2018) with explicit, offline-first weight resolution.
+
+The metric is computed exactly as the official ``lpips`` package (v0.1, ``LPIPS(net=..., version="0.1")``
+with ``normalize=True``):
+
+1. images in [0, 1] are mapped to [-1, 1] (``2 x - 1``);
+2. the ScalingLayer: ``(x - shift) / scale`` with shift ``[-.030, -.088, -.188]``, scale ``[.458, .448, .450]``;
+3. five ReLU feature maps of the backbone (AlexNet ``relu1..relu5`` / VGG16 ``relu1_2, relu2_2, relu3_3,
+   relu4_3, relu5_3``);
+4. each feature map unit-normalised over channels (``f / (||f||_2 + 1e-10)``), squared difference,
+   1x1 linear head (no bias), spatial average, sum over the five layers.
+
+Weights come in two parts, neither of which is ever replaced by a substitute:
+
+- **Backbone**: torchvision ImageNet checkpoints. Our `alexnet_features` / `vgg16_features` have the same
+  layer structure and state-dict keys as torchvision's ``alexnet().features`` / ``vgg16().features``, so a
+  torchvision file (full model, keys ``features.*``/``classifier.*``, or features only) loads directly.
+  Looked up, in order: the ``backbone_path`` argument, the ``METEGS_LPIPS_BACKBONE`` env var (a file, or a
+  folder holding the torchvision file name), then ``torch.hub.get_dir()/checkpoints/<file>``
+  (``alexnet-owt-7be5be79.pth`` / ``vgg16-397923af.pth``). Only with ``allow_download=True`` is the file
+  fetched with ``torch.hub.load_state_dict_from_url`` (into that same cache).
+- **Linear heads**: the official ``lpips`` files ``<net>.pth`` (keys ``lin{0..4}.model.1.weight``, shapes
+  ``[1, C_l, 1, 1]``). Looked up, in order: the ``heads_dir`` argument, the ``METEGS_LPIPS_HEADS`` env var,
+  then the shared folder ``<repo>/../shared/data/weights/lpips-linear``. Each may be the ``.pth`` file
+  itself or a folder holding ``<net>.pth``, ``v0.1/<net>.pth`` or ``weights/v0.1/<net>.pth``.
+
+An explicitly given path (argument or env var) that does not hold the file is an error; it never falls
+back silently to another location. Missing weights raise `WeightsUnavailable`; `try_load_lpips` turns that
+into ``(None, reason)`` so an evaluator can report LPIPS as null with the reason.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from torch import nn
+
+import metegs
+from metegs.errors import MetegsError
+
+__all__ = [
+    "BACKBONE_ENV",
+    "HEADS_ENV",
+    "LPIPS",
+    "WeightsUnavailable",
+    "alexnet_features",
+    "default_heads_dir",
+    "load_lpips",
+    "lpips",
+    "resolve_backbone_file",
+    "resolve_heads_file",
+    "try_load_lpips",
+    "vgg16_features",
+]
+
+BACKBONE_ENV = "METEGS_LPIPS_BACKBONE"
+HEADS_ENV = "METEGS_LPIPS_HEADS"
+
+_SHIFT = (-0.030, -0.088, -0.188)
+_SCALE = (0.458, 0.448, 0.450)
+_EPS = 1e-10
+
+
+class WeightsUnavailable(MetegsError):
+    """LPIPS weights (backbone or linear heads) cannot be found or loaded.
+
+    Attributes:
+        net: ``"alex"`` or ``"vgg"``.
+        part: ``"backbone"`` or ``"heads"``.
+        reason: human-readable explanation, including where the file was looked for and how to provide it.
+    """
+
+    def __init__(self, net: str, part: str, reason: str):
+        self.net = net
+        self.part = part
+        self.reason = reason
+        super().__init__(f"LPIPS-{net} {part} weights unavailable: {reason}")
+
+
+# --------------------------------------------------------------------------------------------- backbones
+
+
+def alexnet_features() -> nn.Sequential:
+    """AlexNet feature extractor, layer-for-layer identical to torchvision ``alexnet().features``.
+
+    Input ``[N, 3, H, W]``; state-dict keys ``{0,3,6,8,10}.{weight,bias}``.
+    """
+    return nn.Sequential(
+        nn.Conv2d(3, 64, kernel_size=11, stride=4, padding=2),
+        nn.ReLU(),
+        nn.MaxPool2d(kernel_size=3, stride=2),
+        nn.Conv2d(64, 192, kernel_size=5, padding=2),
+        nn.ReLU(),
+        nn.MaxPool2d(kernel_size=3, stride=2),
+        nn.Conv2d(192, 384, kernel_size=3, padding=1),
+        nn.ReLU(),
+        nn.Conv2d(384, 256, kernel_size=3, padding=1),
+        nn.ReLU(),
+        nn.Conv2d(256, 256, kernel_size=3, padding=1),
+        nn.ReLU(),
+        nn.MaxPool2d(kernel_size=3, stride=2),
+    )
+
+
+_VGG16_CFG = (64, 64, "M", 128, 128, "M", 256, 256, 256, "M", 512, 512, 512, "M", 512, 512, 512, "M")
+
+
+def vgg16_features() -> nn.Sequential:
+    """VGG16 (no batch norm) feature extractor, identical to torchvision ``vgg16().features`` (31 modules).
+
+    Input ``[N, 3, H, W]``; state-dict keys ``{0,2,5,7,10,...,28}.{weight,bias}``.
+    """
+    layers: list[nn.Module] = []
+    in_ch = 3
+    for v in _VGG16_CFG:
+        if v == "M":
+            layers.append(nn.MaxPool2d(kernel_size=2, stride=2))
+        else:
+            layers += [nn.Conv2d(in_ch, int(v), kernel_size=3, padding=1), nn.ReLU()]
+            in_ch = int(v)
+    return nn.Sequential(*layers)
+
+
+@dataclass(frozen=True)
+class _NetSpec:
+    filename: str
+    url: str
+    build: Callable[[], nn.Sequential]
+    # exclusive end index (into the Sequential) of each of the 5 LPIPS slices, as the official package
+    slice_ends: tuple[int, ...]
+    channels: tuple[int, ...]
+
+
+_NETS: dict[str, _NetSpec] = {
+    "alex": _NetSpec(
+        "alexnet-owt-7be5be79.pth",
+        "https://download.pytorch.org/models/alexnet-owt-7be5be79.pth",
+        alexnet_features,
+        (2, 5, 8, 10, 12),
+        (64, 192, 384, 256, 256),
+    ),
+    "vgg": _NetSpec(
+        "vgg16-397923af.pth",
+        "https://download.pytorch.org/models/vgg16-397923af.pth",
+        vgg16_features,
+        (4, 9, 16, 23, 30),
+        (64, 128, 256, 512, 512),
+    ),
+}
+
+
+def _spec(net: str) -> _NetSpec:
+    if net not in _NETS:
+        raise ValueError(f"LPIPS net must be one of {sorted(_NETS)}, got {net!r}")
+    return _NETS[net]
+
+
+# ------------------------------------------------------------------------------------------------ module
+
+
+class _LinearHead(nn.Module):
+    """Official ``NetLinLayer`` layout: ``model = Sequential(Dropout, Conv2d(C, 1, 1, bias=False))``.
+
+    The dropout (identity at eval time, which is how LPIPS is always used) is an `nn.Identity` here so the
+    key ``model.1.weight`` is preserved while the module behaves the same in train mode.
+    """
+
+    def __init__(self, channels: int):
+        super().__init__()
+        self.model = nn.Sequential(nn.Identity(), nn.Conv2d(channels, 1, kernel_size=1, bias=False))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.model(x)
+
+
+class _LinearHeads(nn.Module):
+    """Holds ``lin0..lin4`` so the official heads file loads with ``load_state_dict`` as is."""
+
+    def __init__(self, channels: tuple[int, ...]):
+        super().__init__()
+        for i, c in enumerate(channels):
+            self.add_module(f"lin{i}", _LinearHead(c))
+
+    def __getitem__(self, i: int) -> _LinearHead:
+        return getattr(self, f"lin{i}")
+
+
+class LPIPS(nn.Module):
+    """LPIPS v0.1 distance. Parameters are frozen; gradients flow to the inputs (usable as a loss).
+
+    ``LPIPS(net)`` has randomly initialised weights: use `load_lpips` to get the real metric.
+
+    Attributes:
+        net: ``"alex"`` or ``"vgg"``.
+        features: the torchvision-compatible backbone ``nn.Sequential``.
+        heads: the five 1x1 linear heads (keys ``lin{i}.model.1.weight``).
+    """
+
+    def __init__(self, net: str = "alex"):
+        super().__init__()
+        spec = _spec(net)
+        self.net = net
+        self._slice_ends = spec.slice_ends
+        self.register_buffer("shift", torch.tensor(_SHIFT).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("scale", torch.tensor(_SCALE).view(1, 3, 1, 1), persistent=False)
+        self.features = spec.build()
+        self.heads = _LinearHeads(spec.channels)
+        self.requires_grad_(False)
+        self.eval()
+
+    def _layer_features(self, x: torch.Tensor) -> list[torch.Tensor]:
+        """Five ReLU feature maps ``[N, C_l, H_l, W_l]`` of the scaled input ``x`` ``[N, 3, H, W]``."""
+        outs = []
+        start = 0
+        for end in self._slice_ends:
+            for i in range(start, end):
+                x = self.features[i](x)
+            outs.append(x)
+            start = end
+        return outs
+
+    def distance_nchw(self, x0: torch.Tensor, x1: torch.Tensor) -> torch.Tensor:
+        """LPIPS between ``[N, 3, H, W]`` images in **[-1, 1]** (the official ``normalize=False`` input).
+
+        Returns:
+            ``[N]`` distances.
+        """
+        if x0.shape != x1.shape or x0.ndim != 4 or x0.shape[1] != 3:
+            raise ValueError(f"expected two [N, 3, H, W] tensors of equal shape, got {tuple(x0.shape)}, "
+                             f"{tuple(x1.shape)}")
+        dtype = self.shift.dtype
+        x0 = (x0.to(dtype) - self.shift) / self.scale
+        x1 = (x1.to(dtype) - self.shift) / self.scale
+        try:
+            f0, f1 = self._layer_features(x0), self._layer_features(x1)
+        except RuntimeError as e:
+            raise ValueError(f"LPIPS-{self.net}: image of size {tuple(x0.shape[-2:])} is too small for the "
+                             f"backbone ({e})") from e
+        total = x0.new_zeros(x0.shape[0])
+        for i, (a, b) in enumerate(zip(f0, f1, strict=True)):
+            a = a / (a.pow(2).sum(dim=1, keepdim=True).sqrt() + _EPS)
+            b = b / (b.pow(2).sum(dim=1, keepdim=True).sqrt() + _EPS)
+            total = total + self.heads[i]((a - b).pow(2)).mean(dim=(1, 2, 3))
+        return total
+
+    def forward(self, pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        """LPIPS between channels-last images in **[0, 1]**.
+
+        Args:
+            pred, target: ``[..., H, W, 3]``, same shape.
+
+        Returns:
+            distances of shape ``[...]`` (a scalar for a single ``[H, W, 3]`` image).
+        """
+        if pred.shape != target.shape or pred.ndim < 3 or pred.shape[-1] != 3:
+            raise ValueError(f"expected two [..., H, W, 3] tensors of equal shape, got {tuple(pred.shape)}, "
+                             f"{tuple(target.shape)}")
+        batch = pred.shape[:-3]
+        h, w = pred.shape[-3:-1]
+        x0 = pred.reshape(-1, h, w, 3).permute(0, 3, 1, 2) * 2 - 1
+        x1 = target.reshape(-1, h, w, 3).permute(0, 3, 1, 2) * 2 - 1
+        return self.distance_nchw(x0, x1).reshape(batch)
+
+
+# -------------------------------------------------------------------------------------------- resolution
+
+
+def default_heads_dir() -> Path:
+    """The shared heads folder ``<repo>/../shared/data/weights/lpips-linear`` (may not exist)."""
+    return Path(metegs.__file__).resolve().parents[2] / "shared" / "data" / "weights" / "lpips-linear"
+
+
+def _how_to_provide_backbone(spec: _NetSpec) -> str:
+    cache = Path(torch.hub.get_dir()) / "checkpoints" / spec.filename
+    return (f"provide the torchvision checkpoint {spec.filename} ({spec.url}) by placing it at {cache}, "
+            f"passing backbone_path=..., or setting {BACKBONE_ENV}=/path/to/{spec.filename}; "
+            f"or allow downloading (allow_download=True)")
+
+
+def _file_in(path: Path, names: list[str]) -> Path | None:
+    """``path`` itself if it is a file, else the first existing ``path / name``."""
+    if path.is_file():
+        return path
+    if path.is_dir():
+        for name in names:
+            if (path / name).is_file():
+                return path / name
+    return None
+
+
+def resolve_backbone_file(net: str = "alex", backbone_path: str | Path | None = None) -> Path:
+    """Find the torchvision backbone checkpoint on disk (no download).
+
+    Order: ``backbone_path`` (file, or folder holding the torchvision file name), ``$METEGS_LPIPS_BACKBONE``,
+    ``torch.hub.get_dir()/checkpoints/<file>``.
+
+    Raises:
+        WeightsUnavailable: not found; the message lists the places tried and how to provide the file.
+    """
+    spec = _spec(net)
+    for source, given in (("backbone_path", backbone_path), (BACKBONE_ENV, os.environ.get(BACKBONE_ENV))):
+        if given:
+            found = _file_in(Path(given).expanduser(), [spec.filename])
+            if found is None:
+                raise WeightsUnavailable(net, "backbone", f"{source}={given} is not {spec.filename} nor a folder "
+                                         f"holding it; {_how_to_provide_backbone(spec)}")
+            return found
+    cached = Path(torch.hub.get_dir()) / "checkpoints" / spec.filename
+    if cached.is_file():
+        return cached
+    raise WeightsUnavailable(net, "backbone", f"{spec.filename} not found in the torch hub cache "
+                             f"({cached.parent}); {_how_to_provide_backbone(spec)}")
+
+
+def resolve_heads_file(net: str = "alex", heads_dir: str | Path | None = None, version: str = "0.1") -> Path:
+    """Find the official LPIPS linear-heads file ``<net>.pth``.
+
+    Order: ``heads_dir``, ``$METEGS_LPIPS_HEADS``, `default_heads_dir`. Each may be the file itself or a
+    folder holding ``<net>.pth``, ``v<version>/<net>.pth`` or ``weights/v<version>/<net>.pth``.
+
+    Raises:
+        WeightsUnavailable: not found.
+    """
+    _spec(net)
+    names = [f"{net}.pth", f"v{version}/{net}.pth", f"weights/v{version}/{net}.pth"]
+    how = (f"pass heads_dir=... or set {HEADS_ENV} to the official lpips v{version} '{net}.pth' (from the lpips "
+           f"package, lpips/weights/v{version}/{net}.pth) or a folder holding it")
+    for source, given in (("heads_dir", heads_dir), (HEADS_ENV, os.environ.get(HEADS_ENV))):
+        if given:
+            found = _file_in(Path(given).expanduser(), names)
+            if found is None:
+                raise WeightsUnavailable(net, "heads", f"{source}={given} holds none of {names}; {how}")
+            return found
+    default = default_heads_dir()
+    found = _file_in(default, names)
+    if found is None:
+        raise WeightsUnavailable(net, "heads", f"none of {names} under {default}; {how}")
+    return found
+
+
+# ------------------------------------------------------------------------------------------------ loading
+
+
+def _torch_load(path: Path, net: str, part: str) -> Mapping[str, torch.Tensor]:
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # corrupt / truncated / not a torch file
+        raise WeightsUnavailable(net, part, f"cannot read {path}: {type(e).__name__}: {e}") from e
+    if not isinstance(state, Mapping):
+        raise WeightsUnavailable(net, part, f"{path} does not hold a state dict (got {type(state).__name__})")
+    return state
+
+
+def _backbone_state(state: Mapping[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """Features-only keys from a torchvision full-model or features-only state dict."""
+    if "state_dict" in state and isinstance(state["state_dict"], Mapping):
+        state = state["state_dict"]
+    if any(k.startswith("features.") for k in state):
+        return {k[len("features."):]: v for k, v in state.items() if k.startswith("features.")}
+    return dict(state)
+
+
+def _download_backbone(spec: _NetSpec, net: str) -> Mapping[str, torch.Tensor]:
+    try:
+        return torch.hub.load_state_dict_from_url(spec.url, map_location="cpu", progress=False, check_hash=True,
+                                                  weights_only=True)
+    except Exception as e:  # offline (URLError), hash mismatch, disk full...
+        raise WeightsUnavailable(net, "backbone", f"download of {spec.url} failed ({type(e).__name__}: {e}); "
+                                 f"{_how_to_provide_backbone(spec)}") from e
+
+
+def load_lpips(
+    net: str = "alex",
+    backbone_path: str | Path | None = None,
+    heads_dir: str | Path | None = None,
+    allow_download: bool = False,
+    device: str | torch.device | None = None,
+) -> LPIPS:
+    """Build the LPIPS-``net`` metric with real weights (see module docstring for the lookup order).
+
+    Args:
+        net: ``"alex"`` (default, as in the 3DGS papers' tables) or ``"vgg"``.
+        backbone_path: torchvision checkpoint file, or a folder holding it.
+        heads_dir: official heads file ``<net>.pth`` or a folder holding it.
+        allow_download: when the backbone is found nowhere, fetch it into the torch hub cache.
+        device: where to put the model (default CPU).
+
+    Raises:
+        WeightsUnavailable: a file is missing, unreadable, or does not match the architecture.
+    """
+    spec = _spec(net)
+    try:
+        state = _torch_load(resolve_backbone_file(net, backbone_path), net, "backbone")
+    except WeightsUnavailable:
+        if not allow_download or backbone_path or os.environ.get(BACKBONE_ENV):
+            raise
+        state = _download_backbone(spec, net)
+    heads_file = resolve_heads_file(net, heads_dir)
+    heads_state = _torch_load(heads_file, net, "heads")
+
+    model = LPIPS(net)
+    try:
+        model.features.load_state_dict(_backbone_state(state), strict=True)
+    except RuntimeError as e:
+        raise WeightsUnavailable(net, "backbone", f"checkpoint does not match the {net} backbone "
+                                 f"({spec.filename} expected): {e}") from e
+    try:
+        model.heads.load_state_dict(dict(heads_state), strict=True)
+    except RuntimeError as e:
+        raise WeightsUnavailable(net, "heads", f"{heads_file} does not match the LPIPS-{net} heads: {e}") from e
+    return model.to(device) if device is not None else model
+
+
+def try_load_lpips(
+    net: str = "alex",
+    backbone_path: str | Path | None = None,
+    heads_dir: str | Path | None = None,
+    allow_download: bool = False,
+    device: str | torch.device | None = None,
+) -> tuple[LPIPS | None, str | None]:
+    """`load_lpips`, but returns ``(model, None)`` or ``(None, reason)`` instead of raising.
+
+    Only `WeightsUnavailable` is turned into a reason; a bad ``net`` name still raises ``ValueError``.
+    """
+    try:
+        return load_lpips(net, backbone_path, heads_dir, allow_download, device), None
+    except WeightsUnavailable as e:
+        return None, str(e)
+
+
+_CACHE: dict[tuple, LPIPS] = {}
+
+
+def lpips(
+    pred: torch.Tensor,
+    target: torch.Tensor,
+    net: str = "alex",
+    backbone_path: str | Path | None = None,
+    heads_dir: str | Path | None = None,
+    allow_download: bool = False,
+) -> torch.Tensor:
+    """Mean LPIPS between channels-last images ``[..., H, W, 3]`` in [0, 1] (scalar tensor).
+
+    The model is loaded once per (net, paths, env) and cached; it is moved to ``pred.device``.
+
+    Raises:
+        WeightsUnavailable: weights missing (never substituted).
+    """
+    key = (net, str(backbone_path), str(heads_dir), os.environ.get(BACKBONE_ENV), os.environ.get(HEADS_ENV),
+           torch.hub.get_dir())
+    if key not in _CACHE:
+        _CACHE[key] = load_lpips(net, backbone_path, heads_dir, allow_download)
+    model = _CACHE[key].to(pred.device)
+    return model(pred, target).mean()
+

@@ -1,0 +1,129 @@
+"""The `torch` rasteriser: the reference backend, pure PyTorch on any device, differentiable by autograd.
+
+Per tile, Gaussians are composited front to back in chunks of ``chunk`` Gaussians (the only Python
+loop, ~max_list_length / chunk iterations); tiles whose pixels are all saturated (T < 1e-4) leave the
+loop early, empty tiles cost nothing.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from metegs.cameras import Cameras
+from metegs.gaussians.model import GaussianSet
+from metegs.gaussians.sh import eval_sh
+from metegs.render.base import ALPHA_MAX, ALPHA_MIN, T_MIN, RenderOutput, RenderSettings
+from metegs.render.projection import project_gaussians
+from metegs.render.tiles import TILE_SIZE, bin_gaussians
+
+
+def gaussian_colors(g: GaussianSet, campos: torch.Tensor, sh_degree: int) -> torch.Tensor:
+    """View-dependent colours. campos: [3] -> [N, 3], clamped at 0 (as 3DGS)."""
+    if g.sh.shape[1] == 1 or sh_degree == 0:
+        return (0.28209479177387814 * g.sh[:, 0] + 0.5).clamp_min(0.0)
+    d = g.means - campos
+    d = torch.where(torch.isfinite(d).all(dim=1, keepdim=True), d, torch.zeros_like(d))  # NaN means stay local
+    d = d / d.norm(dim=1, keepdim=True).clamp_min(1e-12)
+    return eval_sh(sh_degree, g.sh, d).clamp_min(0.0)
+
+
+def composite_tiles(
+    means2d: torch.Tensor,
+    conics: torch.Tensor,
+    opacities: torch.Tensor,
+    colors: torch.Tensor,
+    depths: torch.Tensor,
+    bins,
+    width: int,
+    height: int,
+    chunk: int = 32,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Front-to-back alpha compositing over tiles.
+
+    means2d [N, 2], conics [N, 3], opacities [N], colors [N, D], depths [N] ->
+    (color [H, W, D], alpha [H, W], depth_sum [H, W]) with depth_sum = sum_i w_i z_i.
+    alpha_i = min(0.99, o_i exp(-q_i/2)), skipped below 1/255; a pixel stops once T < 1e-4 (the
+    contribution that would bring it below is not added, as in the CUDA reference).
+    """
+    device, dtype = means2d.device, means2d.dtype
+    tiles = bins.tiles_x * bins.tiles_y
+    P = TILE_SIZE * TILE_SIZE
+    D = colors.shape[1]
+    counts = bins.counts
+    iy, ix = torch.meshgrid(torch.arange(TILE_SIZE, device=device), torch.arange(TILE_SIZE, device=device), indexing="ij")
+    tile_idx = torch.arange(tiles, device=device)
+    pix_x = (tile_idx % bins.tiles_x)[:, None] * TILE_SIZE + ix.reshape(1, P) + 0.5  # [tiles, P]
+    pix_y = (tile_idx // bins.tiles_x)[:, None] * TILE_SIZE + iy.reshape(1, P) + 0.5
+
+    color = torch.zeros(tiles, P, D, device=device, dtype=dtype)
+    depth = torch.zeros(tiles, P, device=device, dtype=dtype)
+    T = torch.ones(tiles, P, device=device, dtype=dtype)
+    active = (counts > 0).nonzero().flatten()
+    start = 0
+    while active.numel() > 0:
+        pos = bins.offsets[active][:, None] + start + torch.arange(chunk, device=device)[None]  # [A, C]
+        valid = (start + torch.arange(chunk, device=device))[None] < counts[active][:, None]
+        ids = bins.gaussian_ids[pos.clamp_max(bins.gaussian_ids.numel() - 1)]
+        ids = torch.where(valid, ids, torch.zeros_like(ids))
+        dx = pix_x[active][:, None, :] - means2d[ids, 0][:, :, None]  # [A, C, P]
+        dy = pix_y[active][:, None, :] - means2d[ids, 1][:, :, None]
+        con = conics[ids]
+        power = -0.5 * (con[..., 0, None] * dx * dx + con[..., 2, None] * dy * dy) - con[..., 1, None] * dx * dy
+        alpha = (opacities[ids][:, :, None] * torch.exp(power.clamp_max(0.0))).clamp_max(ALPHA_MAX)
+        alpha = torch.where(valid[:, :, None] & (alpha >= ALPHA_MIN), alpha, torch.zeros_like(alpha))
+        T_in = T[active][:, None, :]
+        T_after = T_in * torch.cumprod(1.0 - alpha, dim=1)
+        # Early termination: a pixel stops before the Gaussian that would take T below T_MIN. T only
+        # decreases along the list, so `live` is a prefix and the unmasked cumprod is exact on it.
+        live = T_after >= T_MIN
+        weights = torch.where(live, alpha * torch.cat([T_in, T_after[:, :-1]], dim=1), torch.zeros_like(alpha))
+        color = color.index_add(0, active, torch.einsum("acp,acd->apd", weights, colors[ids]))
+        depth = depth.index_add(0, active, torch.einsum("acp,ac->ap", weights, depths[ids]))
+        last = live.sum(dim=1, keepdim=True)  # number of live Gaussians per pixel in this chunk
+        T_end = torch.cat([T_in, T_after], dim=1).gather(1, last).squeeze(1)
+        T = T.index_copy(0, active, T_end)
+        start += chunk
+        with torch.no_grad():
+            still = (counts[active] > start) & (T[active] >= T_MIN).any(dim=1)
+        active = active[still]
+
+    def to_image(t: torch.Tensor) -> torch.Tensor:
+        t = t.reshape(bins.tiles_y, bins.tiles_x, TILE_SIZE, TILE_SIZE, *t.shape[2:])
+        t = t.transpose(1, 2).reshape(bins.tiles_y * TILE_SIZE, bins.tiles_x * TILE_SIZE, *t.shape[4:])
+        return t[:height, :width]
+
+    return to_image(color), 1.0 - to_image(T), to_image(depth)
+
+
+class TorchRasterizer:
+    """Reference rasteriser in plain PyTorch (any device)."""
+
+    name = "torch"
+
+    def __init__(self, chunk: int = 32):
+        self.chunk = chunk
+
+    def render(self, gaussians: GaussianSet, camera: Cameras, settings: RenderSettings | None = None) -> RenderOutput:
+        """Render one view. camera: a single view (len 1)."""
+        s = settings or RenderSettings()
+        width, height = int(camera.width[0]), int(camera.height[0])
+        viewmat = camera.world_to_cameras()[0].to(gaussians.means)
+        K = camera.intrinsics()[0].to(gaussians.means)
+        proj = project_gaussians(
+            gaussians.means, gaussians.quats, gaussians.scales, viewmat, K, width, height,
+            near=s.near, far=s.far, eps2d=s.eps2d, opacities=gaussians.opacities,
+        )
+        means2d = proj.means2d
+        if means2d.requires_grad:
+            means2d.retain_grad()
+        bins = bin_gaussians(means2d.detach(), proj.extents, proj.depths.detach(), width, height)
+        sh_degree = s.sh_degree if s.sh_degree is not None else int(round(gaussians.sh.shape[1] ** 0.5)) - 1
+        colors = gaussian_colors(gaussians, camera.centers[0].to(gaussians.means), sh_degree)
+        color, alpha, depth_sum = composite_tiles(
+            means2d, proj.conics, gaussians.opacities, colors, proj.depths, bins, width, height, self.chunk
+        )
+        bg = s.background_tensor(color)
+        rgb = color + (1.0 - alpha)[..., None] * bg
+        depth = depth_sum / alpha.clamp_min(1e-10)
+        return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, radii=proj.radii, means2d=means2d,
+                            num_intersections=bins.num_intersections, width=width, height=height)
