@@ -52,6 +52,7 @@ class Trainer:
         self.config = replace(config, backend=backend, device=str(self.device))
         if config.threads > 0:
             torch.set_num_threads(config.threads)
+        torch.set_flush_denormal(True)  # tiny transmittances/gradients otherwise slow CPU arithmetic ~30x
         self.console = console
         seed_everything(config.seed)
         self.scene = parse_scene(config.data, config.parser, config.dataset)
@@ -123,7 +124,7 @@ class Trainer:
         changes = self.densifier.step(self.model, self.optimizers, self.step)
         with torch.no_grad():
             mse = float(((out.rgb.clamp(0, 1) - target) ** 2).mean())
-        return {"loss": float(loss), "psnr": -10 * np.log10(max(mse, 1e-10)), **changes}
+        return {"loss": float(loss.detach()), "psnr": -10 * np.log10(max(mse, 1e-10)), **changes}
 
     # --- the loop ----------------------------------------------------------------------------------
     def train(self) -> dict:

@@ -58,6 +58,7 @@ def composite_tiles(
     color = torch.zeros(tiles, P, D, device=device, dtype=dtype)
     depth = torch.zeros(tiles, P, device=device, dtype=dtype)
     T = torch.ones(tiles, P, device=device, dtype=dtype)
+    done = torch.zeros(tiles, P, device=device, dtype=torch.bool)  # pixels that stopped compositing
     active = (counts > 0).nonzero().flatten()
     start = 0
     while active.numel() > 0:
@@ -69,22 +70,25 @@ def composite_tiles(
         dy = pix_y[active][:, None, :] - means2d[ids, 1][:, :, None]
         con = conics[ids]
         power = -0.5 * (con[..., 0, None] * dx * dx + con[..., 2, None] * dy * dy) - con[..., 1, None] * dx * dy
-        alpha = (opacities[ids][:, :, None] * torch.exp(power.clamp_max(0.0))).clamp_max(ALPHA_MAX)
+        # alpha >= 1/255 needs power >= -ln(255) = -5.55: the lower clamp only avoids slow denormal exps.
+        alpha = (opacities[ids][:, :, None] * torch.exp(power.clamp(-10.0, 0.0))).clamp_max(ALPHA_MAX)
         alpha = torch.where(valid[:, :, None] & (alpha >= ALPHA_MIN), alpha, torch.zeros_like(alpha))
         T_in = T[active][:, None, :]
         T_after = T_in * torch.cumprod(1.0 - alpha, dim=1)
         # Early termination: a pixel stops before the Gaussian that would take T below T_MIN. T only
         # decreases along the list, so `live` is a prefix and the unmasked cumprod is exact on it.
-        live = T_after >= T_MIN
+        live = (T_after >= T_MIN) & ~done[active][:, None, :]
         weights = torch.where(live, alpha * torch.cat([T_in, T_after[:, :-1]], dim=1), torch.zeros_like(alpha))
         color = color.index_add(0, active, torch.einsum("acp,acd->apd", weights, colors[ids]))
         depth = depth.index_add(0, active, torch.einsum("acp,ac->ap", weights, depths[ids]))
         last = live.sum(dim=1, keepdim=True)  # number of live Gaussians per pixel in this chunk
         T_end = torch.cat([T_in, T_after], dim=1).gather(1, last).squeeze(1)
         T = T.index_copy(0, active, T_end)
+        with torch.no_grad():
+            done = done.index_copy(0, active, done[active] | (T_after < T_MIN).any(dim=1))
         start += chunk
         with torch.no_grad():
-            still = (counts[active] > start) & (T[active] >= T_MIN).any(dim=1)
+            still = (counts[active] > start) & ~done[active].all(dim=1)
         active = active[still]
 
     def to_image(t: torch.Tensor) -> torch.Tensor:

@@ -54,6 +54,21 @@ def test_matches_brute_force(chunk):
     assert torch.allclose(out.alpha, ref_alpha, atol=1e-10)
 
 
+@pytest.mark.parametrize("chunk", [1, 2, 32])
+def test_stopped_pixels_stay_stopped_across_chunks(chunk):
+    """Opaque Gaussians stop a pixel; fainter ones behind them (in later chunks) must not resume it."""
+    n = 7
+    means = torch.tensor([[0.0, 0.0, 2.0 + 0.1 * i] for i in range(n)], dtype=torch.float64)
+    opac = torch.tensor([0.999, 0.999, 0.999, 0.3, 0.3, 0.3, 0.3], dtype=torch.float64)
+    g = GaussianSet(means, torch.tensor([[1.0, 0, 0, 0]] * n, dtype=torch.float64),
+                    torch.full((n, 3), 0.4, dtype=torch.float64), opac, torch.rand(n, 1, 3, dtype=torch.float64))
+    cam = camera(16, 16)
+    out = TorchRasterizer(chunk=chunk).render(g, cam)
+    ref, ref_alpha = brute_force(g, cam, torch.zeros(3, dtype=torch.float64), 0)
+    assert torch.allclose(out.rgb, ref, atol=1e-12)
+    assert torch.allclose(out.alpha, ref_alpha, atol=1e-12)
+
+
 def test_early_termination_with_opaque_stack():
     """Many nearly opaque Gaussians on one pixel: compositing stops once T would drop below 1e-4."""
     n = 12

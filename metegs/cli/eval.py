@@ -1,0 +1,64 @@
+"""`metegs-eval RUN_DIR`: evaluate a run's Gaussians on its test views and write eval.json."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import tyro
+from rich.console import Console
+
+from metegs.config import atomic_write_text
+from metegs.errors import MetegsError
+
+
+@dataclass
+class EvalArgs:
+    """Evaluate a trained run."""
+
+    run_dir: tyro.conf.Positional[Path]
+    """Run folder (holds config.yml and checkpoints/)."""
+    checkpoint: Path | None = None
+    """Checkpoint to evaluate (default: the latest in the run)."""
+    ply: Path | None = None
+    """Evaluate the Gaussians of this PLY file instead of a checkpoint (e.g. the run's scene.ply)."""
+    split: Literal["test", "train"] = "test"
+    """Which views to evaluate."""
+    lpips_net: Literal["alex", "vgg"] = "alex"
+    """LPIPS backbone."""
+    output: Path | None = None
+    """Where to write the metrics JSON (default: RUN_DIR/eval.json)."""
+    device: str | None = None
+    """Torch device (default: the run's)."""
+
+
+def main(args: EvalArgs) -> dict:
+    from metegs.engine.run import load_run
+    from metegs.eval.lpips import try_load_lpips
+    from metegs.eval.metrics import evaluate_images
+
+    trainer = load_run(args.run_dir, args.checkpoint, args.ply, args.device)
+    ds = trainer.dataset
+    idx = ds.test_indices if args.split == "test" else ds.train_indices
+    if not idx:
+        raise MetegsError(f"{args.run_dir}: the scene has no {args.split} views")
+    model, reason = try_load_lpips(args.lpips_net, device=trainer.device)
+    m = evaluate_images(trainer.render_views(idx), [ds.images[i] for i in idx], lpips_model=model, lpips_reason=reason)
+    m.update(split=args.split, num_gaussians=len(trainer.model), source=str(args.ply or args.checkpoint or "latest checkpoint"))
+    atomic_write_text(args.output or Path(args.run_dir) / "eval.json", json.dumps(m, indent=2))
+    lp = m["lpips"]
+    Console(stderr=True).print(
+        f"{args.split}: PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f}, LPIPS "
+        + (f"{lp:.4f}" if lp is not None else f"null ({m['lpips_reason']})")
+    )
+    return m
+
+
+def entrypoint() -> None:
+    try:
+        main(tyro.cli(EvalArgs, prog="metegs-eval"))
+    except MetegsError as exc:
+        Console(stderr=True).print(f"[bold red]error:[/] {exc}")
+        raise SystemExit(2) from None

@@ -1,0 +1,269 @@
+"""nerfstudio ``transforms.json`` scenes.
+
+Intrinsics ``fl_x, fl_y, cx, cy, w, h`` are read at the top level and may be overridden per frame.
+``transform_matrix`` is camera-to-world in OpenGL camera axes and is converted to OpenCV axes; the
+world frame is kept as is (nerfstudio's world is +Z up). Frames whose image file is missing are
+skipped with one warning. The split comes from ``train_filenames`` / ``test_filenames`` (``val_filenames``
+when there is no test list) when present, else every n-th view is held out. ``ply_file_path`` points
+(x, y, z and optional red, green, blue) are read with a small numpy PLY reader.
+
+Lens distortion is unsupported for transforms.json: non-zero ``k1..k4, p1, p2`` (or
+``distortion_params``) and non-perspective ``camera_model`` values raise a DataError; undistort the
+images first (e.g. with COLMAP and the COLMAP parser).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import warnings
+from pathlib import Path
+from typing import ClassVar
+
+import numpy as np
+import torch
+
+from metegs.cameras import Cameras, opengl_to_opencv
+from metegs.data.config import DatasetConfig
+from metegs.data.scene import SceneData, split_every_nth
+from metegs.errors import DataError
+
+_INTRINSICS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
+_DISTORTION = ("k1", "k2", "k3", "k4", "p1", "p2")
+_PERSPECTIVE = ("PINHOLE", "SIMPLE_PINHOLE", "OPENCV", "SIMPLE_RADIAL", "RADIAL")
+
+
+def read_json(path: Path) -> dict:
+    """Parse a JSON object file; DataError naming the file if it is missing, malformed or not an object."""
+    try:
+        with open(path, encoding="utf-8") as f:
+            meta = json.load(f)
+    except FileNotFoundError as exc:
+        raise DataError(path, "file does not exist") from exc
+    except (OSError, ValueError) as exc:
+        raise DataError(path, f"cannot parse JSON: {exc}") from exc
+    if not isinstance(meta, dict):
+        raise DataError(path, "expected a JSON object at the top level")
+    return meta
+
+
+def gl_matrix(value, source: Path, where: str) -> np.ndarray:
+    """A 4x4 (or 3x4) camera-to-world list from JSON -> float64 [4, 4]; DataError naming ``where`` if malformed."""
+    try:
+        m = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise DataError(source, f"{where} has a non-numeric 'transform_matrix'") from exc
+    if m.shape == (3, 4):
+        m = np.concatenate([m, [[0.0, 0.0, 0.0, 1.0]]])
+    if m.shape != (4, 4) or not np.isfinite(m).all():
+        raise DataError(source, f"{where} has a malformed 'transform_matrix' (expected 4x4 finite numbers)")
+    return m
+
+
+def gl_to_cv(c2w_gl: np.ndarray) -> np.ndarray:
+    """[N, 4, 4] OpenGL camera-to-worlds -> [N, 4, 4] float32 OpenCV camera-to-worlds."""
+    return opengl_to_opencv(torch.from_numpy(np.asarray(c2w_gl, dtype=np.float64))).float().numpy()
+
+
+def warn_missing(source: Path, missing: list[str]) -> None:
+    """One warning listing skipped frames (first 10 names and a count)."""
+    shown = ", ".join(missing[:10]) + (f" and {len(missing) - 10} more" if len(missing) > 10 else "")
+    warnings.warn(f"{source}: skipping {len(missing)} frame(s) whose image file is missing: {shown}", stacklevel=3)
+
+
+class NerfstudioParser:
+    """nerfstudio ``transforms.json`` -> SceneData (see the module docstring)."""
+
+    priority: ClassVar[int] = 20
+
+    @staticmethod
+    def can_parse(path: Path) -> bool:
+        path = Path(path)
+        return (path.is_dir() and (path / "transforms.json").is_file()) or (path.is_file() and path.suffix == ".json")
+
+    def parse(self, path: Path | None, options: DatasetConfig) -> SceneData:
+        if path is None:
+            raise DataError(None, "the nerfstudio parser needs a transforms.json file or its folder")
+        path = Path(path)
+        source = path / "transforms.json" if path.is_dir() else path
+        meta = read_json(source)
+        frames = meta.get("frames")
+        if not isinstance(frames, list) or not frames:
+            raise DataError(source, "missing or empty 'frames' list")
+        _check_model(meta, source, "the top level")
+        views = [self._frame(meta, fr, i, source) for i, fr in enumerate(frames)]
+        views.sort(key=lambda v: v["name"])
+        present = [v for v in views if v["path"].is_file()]
+        missing = [v["name"] for v in views if not v["path"].is_file()]
+        if not present:
+            raise DataError(source, f"no images found: none of the {len(views)} frame image files exist")
+        if missing:
+            warn_missing(source, missing)
+        cams = Cameras.create(
+            gl_to_cv(np.stack([v["c2w"] for v in present])),
+            *([v[k] for v in present] for k in _INTRINSICS),
+        )
+        names = [v["name"] for v in present]
+        train, test = _split(meta, names, source.parent, options.test_every)
+        points, colors = self._points(meta, source)
+        return SceneData(
+            cameras=cams, names=names, image_paths=[v["path"] for v in present],
+            train_indices=train, test_indices=test, points=points, point_colors=colors, source=path,
+        )
+
+    @staticmethod
+    def _frame(meta: dict, frame, index: int, source: Path) -> dict:
+        """One frame -> {name, path, c2w (GL [4, 4]), fl_x, fl_y, cx, cy, w, h}."""
+        where = f"frame {index}"
+        if not isinstance(frame, dict):
+            raise DataError(source, f"{where} is not a JSON object")
+        if "file_path" not in frame:
+            raise DataError(source, f"{where} has no 'file_path'")
+        if "transform_matrix" not in frame:
+            raise DataError(source, f"{where} has no 'transform_matrix'")
+        _check_model(frame, source, where)
+        view = {"name": os.path.normpath(str(frame["file_path"])), "path": source.parent / str(frame["file_path"])}
+        view["c2w"] = gl_matrix(frame["transform_matrix"], source, where)
+        for key in _INTRINSICS:
+            value = frame.get(key, meta.get(key))
+            if value is None:
+                raise DataError(source, f"{where} has no intrinsic '{key}' (neither per frame nor at the top level)")
+            try:
+                view[key] = float(value)
+            except (TypeError, ValueError) as exc:
+                raise DataError(source, f"{where}: intrinsic '{key}' is not a number: {value!r}") from exc
+        return view
+
+    @staticmethod
+    def _points(meta: dict, source: Path) -> tuple[np.ndarray | None, np.ndarray | None]:
+        ply = meta.get("ply_file_path")
+        if not ply:
+            return None, None
+        return read_ply_points(source.parent / str(ply))
+
+
+def _check_model(obj: dict, source: Path, where: str) -> None:
+    """DataError if ``obj`` declares a non-perspective camera model or non-zero lens distortion."""
+    model = obj.get("camera_model")
+    if model is not None and model not in _PERSPECTIVE:
+        raise DataError(source, f"{where}: camera_model {model} is unsupported (only pinhole cameras are)")
+    dist = [obj.get(k, 0.0) or 0.0 for k in _DISTORTION] + list(obj.get("distortion_params") or [])
+    if any(float(d) != 0.0 for d in dist):
+        raise DataError(
+            source,
+            f"{where}: lens distortion is unsupported for transforms.json (non-zero k1..k4/p1/p2); "
+            "undistort the images first",
+        )
+
+
+def _split(meta: dict, names: list[str], root: Path, every: int) -> tuple[list[int], list[int]]:
+    """Train/test indices from ``train_filenames``/``test_filenames`` (or ``val_filenames``), else every n-th."""
+    lists = {k: meta.get(f"{k}_filenames") for k in ("train", "val", "test")}
+    test_list = lists["test"] if lists["test"] is not None else lists["val"]
+    if lists["train"] is None and test_list is None:
+        return split_every_nth(len(names), every)
+    norm = lambda items: {os.path.normpath(str(x)) for x in items}  # noqa: E731
+    if lists["train"] is not None:
+        train_set = norm(lists["train"])
+        train = [i for i, n in enumerate(names) if n in train_set]
+        test_set = norm(test_list) if test_list is not None else set(names) - train_set
+    else:
+        test_set = norm(test_list)
+        train = [i for i, n in enumerate(names) if n not in test_set]
+    test = [i for i, n in enumerate(names) if n in test_set]
+    return train, test
+
+
+_PLY_TYPES = {
+    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
+    "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+}
+
+
+def _ply_header(f, path: Path) -> tuple[str, list[tuple[str, int, list]]]:
+    """(format, [(element name, count, [(property, type or None for lists)])]) of a PLY header."""
+    if f.readline().strip() != b"ply":
+        raise DataError(path, "not a PLY file (missing 'ply' magic)")
+    fmt, elements = None, []
+    while True:
+        line = f.readline()
+        if not line:
+            raise DataError(path, "PLY header has no 'end_header'")
+        words = line.decode("ascii", errors="replace").split()
+        if not words or words[0] in ("comment", "obj_info"):
+            continue
+        if words[0] == "end_header":
+            break
+        if words[0] == "format":
+            fmt = words[1]
+        elif words[0] == "element":
+            elements.append((words[1], int(words[2]), []))
+        elif words[0] == "property" and elements:
+            is_list = words[1] == "list"
+            if not is_list and words[1] not in _PLY_TYPES:
+                raise DataError(path, f"unknown PLY property type {words[1]}")
+            elements[-1][2].append((words[-1], None if is_list else _PLY_TYPES[words[1]]))
+    if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
+        raise DataError(path, f"unsupported PLY format {fmt}")
+    return fmt, elements
+
+
+def read_ply_points(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
+    """Vertices of a PLY file: [P, 3] float32 xyz and [P, 3] float32 colours in [0, 1] (None without colours).
+
+    Supports ASCII and binary PLY whose elements before ``vertex`` have no list properties.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(path, "PLY file does not exist")
+    with open(path, "rb") as f:
+        fmt, elements = _ply_header(f, path)
+        vertex = None
+        for name, count, props in elements:
+            if name != "vertex" and any(t is None for _, t in props):
+                raise DataError(path, f"PLY element '{name}' before 'vertex' has list properties (unsupported)")
+            if name == "vertex":
+                vertex = _read_ply_element(f, fmt, count, props, path)
+                break
+            _read_ply_element(f, fmt, count, props, path)
+    if vertex is None:
+        raise DataError(path, "PLY file has no 'vertex' element")
+    return _ply_xyz_rgb(vertex, path)
+
+
+def _read_ply_element(f, fmt: str, count: int, props: list, path: Path) -> np.ndarray:
+    if any(t is None for _, t in props):
+        raise DataError(path, "PLY vertex element with list properties is unsupported")
+    if fmt == "ascii":
+        rows = [f.readline().split() for _ in range(count)]
+        try:
+            table = np.array(rows, dtype=np.float64).reshape(count, len(props))
+        except ValueError as exc:
+            raise DataError(path, "malformed ASCII PLY data") from exc
+        data = np.empty(count, dtype=np.dtype([(n, t) for n, t in props]))
+        for j, (n, _) in enumerate(props):
+            data[n] = table[:, j]
+        return data
+    order = "<" if fmt == "binary_little_endian" else ">"
+    dtype = np.dtype([(n, order + t) for n, t in props])
+    data = np.frombuffer(f.read(dtype.itemsize * count), dtype=dtype)
+    if len(data) != count:
+        raise DataError(path, f"PLY file is truncated: expected {count} elements, read {len(data)}")
+    return data
+
+
+def _ply_xyz_rgb(vertex: np.ndarray, path: Path) -> tuple[np.ndarray, np.ndarray | None]:
+    fields = vertex.dtype.names
+    if not all(k in fields for k in ("x", "y", "z")):
+        raise DataError(path, "PLY vertices have no x, y, z properties")
+    xyz = np.stack([vertex[k] for k in ("x", "y", "z")], axis=1).astype(np.float32)
+    if not all(k in fields for k in ("red", "green", "blue")):
+        return xyz, None
+    rgb = np.stack([vertex[k] for k in ("red", "green", "blue")], axis=1).astype(np.float32)
+    kind = vertex.dtype["red"]
+    if kind.kind == "f":
+        scale = 255.0 if rgb.size and rgb.max() > 1.0 else 1.0  # float colours in [0, 1] (or 0..255)
+    else:
+        scale = float(np.iinfo(kind).max)
+    return xyz, np.clip(rgb / scale, 0.0, 1.0)

@@ -1,0 +1,42 @@
+"""Reopen a finished (or interrupted) run folder from its config.yml and a checkpoint or scene.ply."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+from metegs.config import apply_overrides, load_yaml
+from metegs.errors import ConfigError, DataError
+from metegs.registry import registry
+
+
+def load_run_config(run_dir: Path):
+    """The TrainConfig saved in ``run_dir/config.yml`` (rebuilt on the method's defaults)."""
+    path = Path(run_dir) / "config.yml"
+    if not path.is_file():
+        raise DataError(path, "no config.yml: not a metegs run folder")
+    data = load_yaml(path)
+    data.pop("metegs_version", None)
+    method = data.pop("method", None)
+    if method is None:
+        raise ConfigError(f"{path}: the field 'method' is missing")
+    try:
+        return apply_overrides(registry("method").get(method)(), data)
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from exc
+
+
+def load_run(run_dir: Path, checkpoint: Path | None = None, ply: Path | None = None, device: str | None = None):
+    """A Trainer set up as the run was, holding the Gaussians of ``ply``, ``checkpoint`` or the latest checkpoint."""
+    from metegs.gaussians.ply import load_ply
+
+    run_dir = Path(run_dir)
+    config = load_run_config(run_dir)
+    config = replace(config, load_checkpoint=None, progress=False, device=device or config.device)
+    trainer = config.setup(run_dir=run_dir)
+    if ply is not None:
+        trainer.model = load_ply(ply).to(trainer.device)
+    else:
+        trainer.load(checkpoint or run_dir / "checkpoints")
+        trainer.model.active_sh_degree = trainer.model.max_sh_degree
+    return trainer

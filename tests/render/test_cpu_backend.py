@@ -1,0 +1,228 @@
+"""The compiled `cpu` rasteriser against the torch reference, a brute-force compositor and finite differences."""
+
+import math
+import warnings
+
+import pytest
+import torch
+
+from metegs.gaussians.model import GaussianSet
+from metegs.render import cpu_backend
+from metegs.render.base import ALPHA_MAX, ALPHA_MIN, T_MIN, RenderSettings
+from metegs.render.cpu_backend import CompositeTiles, CpuBackendWarning, CpuExtensionError, CpuRasterizer
+from metegs.render.projection import project_gaussians
+from metegs.render.tiles import bin_gaussians
+from metegs.render.torch_backend import TorchRasterizer, gaussian_colors
+from metegs.testing import camera, random_scene
+
+try:
+    cpu_backend.load_extension()
+except CpuExtensionError as exc:  # no compiler / ninja on this machine: nothing here can run
+    pytest.skip(f"the cpu rasteriser extension cannot be built here: {exc}", allow_module_level=True)
+
+PARAMS = ("means", "quats", "scales", "opacities", "sh")
+
+
+def render_with_grads(rasterizer, g: GaussianSet, cam, settings: RenderSettings, seed: int = 0):
+    """Render, back-propagate a loss touching rgb, depth and alpha; -> (output, {param: grad}, means2d grad)."""
+    params = {k: getattr(g, k).clone().requires_grad_(True) for k in PARAMS}
+    out = rasterizer.render(GaussianSet(**params), cam, settings)
+    target = torch.rand(out.rgb.shape, dtype=out.rgb.dtype, generator=torch.Generator().manual_seed(seed))
+    loss = ((out.rgb - target) ** 2).sum() + 0.01 * (out.depth * out.alpha).sum() + 0.1 * out.alpha.sum()
+    loss.backward()
+    return out, {k: p.grad for k, p in params.items()}, out.means2d.grad
+
+
+def reference(n: int) -> TorchRasterizer:
+    # One chunk holding every tile's whole list: the reference then stops a pixel for good at
+    # T < T_MIN, as the CUDA kernel and this backend do (with smaller chunks it resumes compositing
+    # in the next chunk, so results would depend on the chunk size).
+    return TorchRasterizer(chunk=max(n, 1))
+
+
+def degenerate(g: GaussianSet, case: str) -> GaussianSet:
+    means, quats, scales, opac = g.means.clone(), g.quats.clone(), g.scales.clone(), g.opacities.clone()
+    k = max(1, len(g) // 8)
+    if case == "behind":
+        means[:k, 2] = -2.0
+    elif case == "tiny_scale":
+        scales[:k] = 1e-8
+    elif case == "huge_scale":
+        scales[:k] = 10.0
+    elif case == "saturated":
+        opac[:] = 1.0
+    elif case == "nan_mean":
+        means[0] = float("nan")
+    return GaussianSet(means, quats, scales, opac, g.sh)
+
+
+def assert_grads_close(got: torch.Tensor, ref: torch.Tensor, name: str):
+    scale = ref.abs().max().clamp_min(1e-12)
+    torch.testing.assert_close(got / scale, ref / scale, rtol=1e-4, atol=1e-6, msg=lambda m: f"{name}: {m}")
+
+
+@pytest.mark.parametrize(
+    ("n", "width", "height", "sh_degree", "case"),
+    [
+        (40, 37, 29, 1, "none"),
+        (300, 70, 45, 3, "none"),
+        (200, 50, 33, 0, "behind"),
+        (200, 45, 31, 2, "tiny_scale"),
+        (120, 40, 30, 1, "huge_scale"),
+        (300, 63, 47, 1, "saturated"),
+        (150, 33, 17, 2, "nan_mean"),
+    ],
+)
+def test_matches_torch_reference(n, width, height, sh_degree, case):
+    g = degenerate(random_scene(n, seed=n + width, sh_degree=sh_degree), case)
+    cam = camera(width, height, f=0.8 * width)
+    settings = RenderSettings(background=(0.2, 0.4, 0.6), sh_degree=sh_degree)
+    ref, ref_grads, ref_m2d = render_with_grads(reference(n), g, cam, settings)
+    out, grads, m2d = render_with_grads(CpuRasterizer(), g, cam, settings)
+    assert out.rgb.shape == (height, width, 3) and out.num_intersections == ref.num_intersections > 0
+    torch.testing.assert_close(out.rgb, ref.rgb, rtol=0, atol=1e-5)
+    torch.testing.assert_close(out.alpha, ref.alpha, rtol=0, atol=1e-5)
+    torch.testing.assert_close(out.depth * out.alpha, ref.depth * ref.alpha, rtol=0, atol=5e-5)
+    for k in PARAMS:
+        assert torch.isfinite(grads[k]).all(), k
+        assert_grads_close(grads[k], ref_grads[k], k)
+    assert_grads_close(m2d, ref_m2d, "means2d")
+
+
+def test_float64_matches_reference_tightly():
+    g = random_scene(250, seed=11, dtype=torch.float64, sh_degree=2)
+    cam = camera(41, 35, f=30.0)
+    settings = RenderSettings(background=(0.1, 0.1, 0.1))
+    ref, ref_grads, _ = render_with_grads(reference(250), g, cam, settings)
+    out, grads, _ = render_with_grads(CpuRasterizer(), g, cam, settings)
+    assert out.rgb.dtype == torch.float64
+    torch.testing.assert_close(out.rgb, ref.rgb, rtol=0, atol=1e-12)
+    torch.testing.assert_close(out.alpha, ref.alpha, rtol=0, atol=1e-12)
+    for k in PARAMS:
+        torch.testing.assert_close(grads[k], ref_grads[k], rtol=1e-9, atol=1e-12)
+
+
+def _composite_inputs(g: GaussianSet, cam, colors=None):
+    W, H = int(cam.width[0]), int(cam.height[0])
+    proj = project_gaussians(g.means, g.quats, g.scales, cam.world_to_cameras()[0].to(g.means),
+                             cam.intrinsics()[0].to(g.means), W, H, opacities=g.opacities)
+    bins = bin_gaussians(proj.means2d, proj.extents, proj.depths, W, H)
+    if colors is None:
+        colors = gaussian_colors(g, cam.centers[0].to(g.means), int(round(g.sh.shape[1] ** 0.5)) - 1)
+    return proj, bins, colors, W, H
+
+
+@pytest.mark.parametrize("channels", [3, 1, 5])
+def test_composite_function_gradcheck(channels):
+    g = random_scene(5, seed=3, dtype=torch.float64, sh_degree=0, max_opacity=0.7)
+    cam = camera(20, 18, f=18.0)
+    colors = torch.rand(5, channels, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+    proj, bins, colors, W, H = _composite_inputs(g, cam, colors)
+    assert bins.num_intersections > 0
+
+    def composite(means2d, conics, opacities, colors, depths):
+        return CompositeTiles.apply(means2d, conics, opacities, colors, depths, bins.gaussian_ids, bins.offsets,
+                                    bins.tiles_x, bins.tiles_y, W, H)
+
+    inputs = tuple(t.detach().clone().requires_grad_(True)
+                   for t in (proj.means2d, proj.conics, g.opacities, colors, proj.depths))
+    assert torch.autograd.gradcheck(composite, inputs, eps=1e-6, atol=1e-6, rtol=1e-4)
+
+
+def brute_composite(means2d, conics, opacities, colors, depths, radii, W, H):
+    """Per pixel, every drawn Gaussian in depth order with the plain 3DGS rules (stop at T < T_MIN)."""
+    order = [i for i in torch.argsort(depths).tolist() if radii[i] > 0]
+    img = torch.zeros(H, W, colors.shape[1], dtype=colors.dtype)
+    alpha_img = torch.zeros(H, W, dtype=colors.dtype)
+    for y in range(H):
+        for x in range(W):
+            T, c = 1.0, torch.zeros(colors.shape[1], dtype=colors.dtype)
+            for i in order:
+                dx, dy = x + 0.5 - float(means2d[i, 0]), y + 0.5 - float(means2d[i, 1])
+                a, b, cc = (float(v) for v in conics[i])
+                power = -0.5 * (a * dx * dx + cc * dy * dy) - b * dx * dy
+                alpha = min(ALPHA_MAX, float(opacities[i]) * math.exp(min(power, 0.0)))
+                if alpha < ALPHA_MIN:
+                    continue
+                if T * (1 - alpha) < T_MIN:
+                    break
+                c = c + alpha * T * colors[i]
+                T *= 1 - alpha
+            img[y, x], alpha_img[y, x] = c, 1 - T
+    return img, alpha_img
+
+
+@pytest.mark.parametrize("opacity_behind", [0.999, 0.3])
+def test_early_termination_with_opaque_stack(opacity_behind):
+    """Nearly opaque Gaussians on one pixel: a pixel stops for good before T would drop below 1e-4."""
+    n = 12
+    means = torch.tensor([[0.0, 0.0, 2.0 + 0.1 * i] for i in range(n)], dtype=torch.float64)
+    opac = torch.full((n,), opacity_behind, dtype=torch.float64)
+    opac[:3] = 0.999  # the pixel stops on the third Gaussian; the fainter ones behind must not come back
+    g = GaussianSet(means, torch.tensor([[1.0, 0, 0, 0]] * n, dtype=torch.float64),
+                    torch.full((n, 3), 0.5, dtype=torch.float64), opac,
+                    torch.rand(n, 1, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(0)))
+    cam = camera(16, 16)
+    out = CpuRasterizer().render(g, cam)
+    proj, _, colors, W, H = _composite_inputs(g, cam)
+    ref, ref_alpha = brute_composite(proj.means2d, proj.conics, g.opacities, colors, proj.depths, proj.radii, W, H)
+    torch.testing.assert_close(out.rgb, ref, rtol=0, atol=1e-12)
+    torch.testing.assert_close(out.alpha, ref_alpha, rtol=0, atol=1e-12)
+    T_end = 1 - float(out.alpha[8, 8])
+    assert T_MIN * (1 - 1e-9) <= T_end <= 0.01 + 1e-12
+    torch.testing.assert_close(out.rgb, reference(n).render(g, cam).rgb, rtol=0, atol=1e-12)
+
+
+def test_matches_brute_force_with_general_channels():
+    g = random_scene(40, seed=7, dtype=torch.float64, sh_degree=0)
+    cam = camera(23, 19, f=20.0)
+    colors = torch.rand(40, 4, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
+    proj, bins, colors, W, H = _composite_inputs(g, cam, colors)
+    color, alpha, depth_sum = CompositeTiles.apply(proj.means2d, proj.conics, g.opacities, colors, proj.depths,
+                                                   bins.gaussian_ids, bins.offsets, bins.tiles_x, bins.tiles_y, W, H)
+    ref, ref_alpha = brute_composite(proj.means2d, proj.conics, g.opacities, colors, proj.depths, proj.radii, W, H)
+    assert color.shape == (H, W, 4)
+    torch.testing.assert_close(color, ref, rtol=0, atol=1e-12)
+    torch.testing.assert_close(alpha, ref_alpha, rtol=0, atol=1e-12)
+
+
+def test_means2d_gradient_is_available_for_densification(cam):
+    g = random_scene(30, seed=4)
+    means = g.means.clone().requires_grad_(True)
+    out = CpuRasterizer().render(GaussianSet(means, g.quats, g.scales, g.opacities, g.sh), cam)
+    out.rgb.sum().backward()
+    assert out.means2d.grad is not None and out.means2d.grad.shape == (30, 2)
+    visible = out.radii > 0
+    assert visible.any() and (out.means2d.grad[~visible] == 0).all()
+    assert out.means2d.grad[visible].abs().sum() > 0
+
+
+def test_empty_scene_renders_background(cam):
+    g = random_scene(10)
+    g.means[:, 2] = -5.0  # all behind the camera
+    params = [t.clone().requires_grad_(True) for t in (g.means, g.quats, g.scales, g.opacities, g.sh)]
+    out = CpuRasterizer().render(GaussianSet(*params), cam, RenderSettings(background=(0.1, 0.2, 0.3)))
+    assert out.num_intersections == 0
+    assert torch.allclose(out.rgb, torch.tensor([0.1, 0.2, 0.3]).expand_as(out.rgb))
+    out.rgb.sum().backward()
+    assert all(torch.isfinite(p.grad).all() and (p.grad == 0).all() for p in params)
+
+
+def test_available_on_cpu_only():
+    assert CpuRasterizer.available("cpu")
+    assert CpuRasterizer.available(torch.device("cpu"))
+    assert not CpuRasterizer.available("cuda")
+    assert not CpuRasterizer.available("meta")
+
+
+def test_build_failure_makes_backend_unavailable_with_one_warning(monkeypatch, cam):
+    monkeypatch.setitem(cpu_backend._state, "ext", None)
+    monkeypatch.setitem(cpu_backend._state, "error", "cannot build ...: g++: not found")
+    monkeypatch.setitem(cpu_backend._state, "warned", False)
+    with pytest.warns(CpuBackendWarning, match="g\\+\\+: not found"):
+        assert not CpuRasterizer.available("cpu")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert not CpuRasterizer.available("cpu")  # cached, warned once
+    with pytest.raises(CpuExtensionError, match="not found"):
+        CpuRasterizer().render(random_scene(5), cam)
