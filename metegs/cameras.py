@@ -39,9 +39,15 @@ def quat_wxyz_to_rotmat(q: torch.Tensor) -> torch.Tensor:
     w, x, y, z = q.unbind(-1)
     return torch.stack(
         [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+            1 - 2 * (y * y + z * z),
+            2 * (x * y - w * z),
+            2 * (x * z + w * y),
+            2 * (x * y + w * z),
+            1 - 2 * (x * x + z * z),
+            2 * (y * z - w * x),
+            2 * (x * z - w * y),
+            2 * (y * z + w * x),
+            1 - 2 * (x * x + y * y),
         ],
         dim=-1,
     ).reshape(*q.shape[:-1], 3, 3)
@@ -71,11 +77,20 @@ class Cameras:
     @staticmethod
     def create(
         camera_to_worlds: torch.Tensor | np.ndarray,
-        fx, fy, cx, cy, width, height,
+        fx,
+        fy,
+        cx,
+        cy,
+        width,
+        height,
         exposure_time_s=None,
-    ) -> "Cameras":
+    ) -> Cameras:
         """Build cameras from arrays or scalars (scalars are broadcast to all N views)."""
-        c2w = torch.as_tensor(np.asarray(camera_to_worlds, dtype=np.float32) if isinstance(camera_to_worlds, np.ndarray) else camera_to_worlds).float()
+        c2w = torch.as_tensor(
+            np.asarray(camera_to_worlds, dtype=np.float32)
+            if isinstance(camera_to_worlds, np.ndarray)
+            else camera_to_worlds
+        ).float()
         if c2w.shape[-2:] == (3, 4):
             c2w = to_homogeneous(c2w)
         n = c2w.shape[0]
@@ -85,20 +100,26 @@ class Cameras:
 
         exp = None if exposure_time_s is None else vec(exposure_time_s, torch.float32)
         return Cameras(
-            c2w, vec(fx, torch.float32), vec(fy, torch.float32), vec(cx, torch.float32),
-            vec(cy, torch.float32), vec(width, torch.int64), vec(height, torch.int64), exp,
+            c2w,
+            vec(fx, torch.float32),
+            vec(fy, torch.float32),
+            vec(cx, torch.float32),
+            vec(cy, torch.float32),
+            vec(width, torch.int64),
+            vec(height, torch.int64),
+            exp,
         )
 
     def __len__(self) -> int:
         return self.camera_to_worlds.shape[0]
 
-    def __getitem__(self, idx) -> "Cameras":
+    def __getitem__(self, idx) -> Cameras:
         if isinstance(idx, int):
             idx = [idx]
         pick = lambda t: None if t is None else t[idx]  # noqa: E731
         return Cameras(*(pick(getattr(self, f)) for f in self.__dataclass_fields__))
 
-    def to(self, device: torch.device | str) -> "Cameras":
+    def to(self, device: torch.device | str) -> Cameras:
         move = lambda t: None if t is None else t.to(device)  # noqa: E731
         return Cameras(*(move(getattr(self, f)) for f in self.__dataclass_fields__))
 
@@ -121,15 +142,18 @@ class Cameras:
         """[N, 3] camera centres in world coordinates."""
         return self.camera_to_worlds[:, :3, 3]
 
-    def resized(self, width: int, height: int) -> "Cameras":
+    def resized(self, width: int, height: int) -> Cameras:
         """Cameras for images resized to ``width`` x ``height`` (all views); intrinsics scale with the size."""
         sx = width / self.width.double()
         sy = height / self.height.double()
         return replace(
             self,
-            fx=(self.fx.double() * sx).float(), cx=(self.cx.double() * sx).float(),
-            fy=(self.fy.double() * sy).float(), cy=(self.cy.double() * sy).float(),
-            width=torch.full_like(self.width, width), height=torch.full_like(self.height, height),
+            fx=(self.fx.double() * sx).float(),
+            cx=(self.cx.double() * sx).float(),
+            fy=(self.fy.double() * sy).float(),
+            cy=(self.cy.double() * sy).float(),
+            width=torch.full_like(self.width, width),
+            height=torch.full_like(self.height, height),
         )
 
     def validate(self, source: str = "cameras") -> None:

@@ -36,9 +36,7 @@ def to_dict(config: Any) -> Any:
     """A config tree as plain YAML-safe data (paths as strings, tuples as lists); private fields dropped."""
     if dataclasses.is_dataclass(config) and not isinstance(config, type):
         return {
-            f.name: to_dict(getattr(config, f.name))
-            for f in dataclasses.fields(config)
-            if not f.name.startswith("_")
+            f.name: to_dict(getattr(config, f.name)) for f in dataclasses.fields(config) if not f.name.startswith("_")
         }
     if isinstance(config, dict):
         return {str(k): to_dict(v) for k, v in config.items()}

@@ -46,7 +46,11 @@ def main(args: EvalArgs) -> dict:
         raise MetegsError(f"{args.run_dir}: the scene has no {args.split} views")
     model, reason = try_load_lpips(args.lpips_net, device=trainer.device)
     m = evaluate_images(trainer.render_views(idx), [ds.images[i] for i in idx], lpips_model=model, lpips_reason=reason)
-    m.update(split=args.split, num_gaussians=len(trainer.model), source=str(args.ply or args.checkpoint or "latest checkpoint"))
+    m.update(
+        split=args.split,
+        num_gaussians=len(trainer.model),
+        source=str(args.ply or args.checkpoint or "latest checkpoint"),
+    )
     atomic_write_text(args.output or Path(args.run_dir) / "eval.json", json.dumps(m, indent=2))
     lp = m["lpips"]
     Console(stderr=True).print(

@@ -72,7 +72,10 @@ def parse_args(argv: list[str]) -> Any:
     descriptions = {name: desc for name, (desc, _) in methods.items()}
     union = tyro.extras.subcommand_type_from_defaults(defaults, descriptions)
     return tyro.cli(
-        union, args=argv, prog="metegs-train", config=(tyro.conf.SuppressFixed,),
+        union,
+        args=argv,
+        prog="metegs-train",
+        config=(tyro.conf.SuppressFixed,),
         description="Train a metegs method. Run `metegs-train <method> --help` for its flags.",
     )
 
@@ -91,9 +94,9 @@ def main(argv: list[str] | None = None) -> dict:
     metrics = trainer.train()
     lp = metrics["lpips"]
     console.print(
-        f"[bold green]done[/] in {metrics['train_seconds']:.1f} s: {metrics['split']} PSNR {metrics['psnr']:.2f} dB, "
+        f"[bold green]done[/]: {metrics['train_seconds']:.1f} s training, {metrics['wall_seconds']:.1f} s wall; {metrics['split']} PSNR {metrics['psnr']:.2f} dB, "
         f"SSIM {metrics['ssim']:.4f}, LPIPS "
-        + (f"{lp:.4f}" if lp is not None else f"null ({metrics['lpips_reason']})")
+        + (f"{lp:.4f}" if lp is not None else "null (backbone weights unavailable; the reason is in metrics.json)")
         + f", {metrics['num_gaussians']} Gaussians; wrote {trainer.run_dir}"
     )
     return metrics

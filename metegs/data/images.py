@@ -24,7 +24,8 @@ def list_images(folder: Path) -> list[Path]:
     if not folder.is_dir():
         raise DataError(folder, "image folder does not exist")
     files = sorted(
-        p for p in folder.iterdir()
+        p
+        for p in folder.iterdir()
         if p.is_file() and not p.name.startswith(".") and p.suffix.lower() in IMAGE_EXTENSIONS
     )
     if not files:

@@ -59,7 +59,7 @@ class DensifyState:
     max_radii: torch.Tensor
 
     @staticmethod
-    def zeros(n: int, device) -> "DensifyState":
+    def zeros(n: int, device) -> DensifyState:
         return DensifyState(torch.zeros(n, device=device), torch.zeros(n, device=device), torch.zeros(n, device=device))
 
 
@@ -183,5 +183,3 @@ class AdaptiveDensityControl:
 
     def load_state_dict(self, d: dict) -> None:
         self.state = DensifyState(**d) if d else None
-
-

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import torch
 from torch import nn
@@ -34,8 +34,12 @@ class OptimConfig:
 def make_optimizers(params: nn.ParameterDict, cfg: OptimConfig, extent: float) -> dict[str, torch.optim.Adam]:
     """One single-group Adam per parameter; the position rate scales with the scene ``extent``."""
     lrs = {
-        "means": cfg.means_lr * extent, "sh0": cfg.sh0_lr, "shN": cfg.shN_lr,
-        "opacities": cfg.opacities_lr, "scales": cfg.scales_lr, "quats": cfg.quats_lr,
+        "means": cfg.means_lr * extent,
+        "sh0": cfg.sh0_lr,
+        "shN": cfg.shN_lr,
+        "opacities": cfg.opacities_lr,
+        "scales": cfg.scales_lr,
+        "quats": cfg.quats_lr,
     }
     return {name: torch.optim.Adam([params[name]], lr=lrs[name], eps=cfg.eps) for name in params.keys()}
 

@@ -47,6 +47,7 @@ class Trainer:
     """Plain 3DGS training of scene Gaussians on the training views."""
 
     def __init__(self, config: TrainConfig, run_dir: Path | None = None, console=None):
+        self._created = time.perf_counter()
         self.device = resolve_device(config.device)
         backend = resolve_backend(config.backend, self.device)
         self.config = replace(config, backend=backend, device=str(self.device))
@@ -87,8 +88,12 @@ class Trainer:
             points = random_points_in_view_overlap(train_cams, mc.init_random_points, seed=self.config.seed)
             colors = np.random.default_rng(self.config.seed).random((len(points), 3), dtype=np.float32)
         return GaussianModel.from_points(
-            points, colors, sh_degree=mc.sh_degree, init_opacity=mc.init_opacity,
-            scale_multiplier=mc.init_scale_multiplier, device=self.device,
+            points,
+            colors,
+            sh_degree=mc.sh_degree,
+            init_opacity=mc.init_opacity,
+            scale_multiplier=mc.init_scale_multiplier,
+            device=self.device,
         )
 
     # --- one step ----------------------------------------------------------------------------------
@@ -166,8 +171,13 @@ class Trainer:
         preds = self.render_views(idx)
         lpips_model, reason = (None, "skipped during training") if quick else self._lpips()
         m = evaluate_images(preds, [self.dataset.images[i] for i in idx], lpips_model=lpips_model, lpips_reason=reason)
-        entry = {"step": self.step, "train_seconds": round(self.train_seconds, 3), "num_gaussians": len(self.model),
-                 "psnr": m["psnr"], "ssim": m["ssim"]}
+        entry = {
+            "step": self.step,
+            "train_seconds": round(self.train_seconds, 3),
+            "num_gaussians": len(self.model),
+            "psnr": m["psnr"],
+            "ssim": m["ssim"],
+        }
         self.history.append(entry)
         return m
 
@@ -201,6 +211,7 @@ class Trainer:
             "num_gaussians": len(self.model),
             "steps": self.step,
             "train_seconds": round(self.train_seconds, 2),
+            "wall_seconds": round(time.perf_counter() - self._created, 2),
             "image_size": [int(self.dataset.cameras.width[0]), int(self.dataset.cameras.height[0])],
             "per_view": m.get("per_view"),
             "history": self.history,

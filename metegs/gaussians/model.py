@@ -34,7 +34,7 @@ class GaussianSet:
         return self.means.shape[0]
 
     @staticmethod
-    def cat(sets: list["GaussianSet"]) -> "GaussianSet":
+    def cat(sets: list[GaussianSet]) -> GaussianSet:
         """Concatenate sets; SH bases are zero-padded to the largest K."""
         k = max(s.sh.shape[1] for s in sets)
         pad = lambda sh: torch.cat([sh, sh.new_zeros(sh.shape[0], k - sh.shape[1], 3)], 1)  # noqa: E731
@@ -94,7 +94,7 @@ class GaussianModel(nn.Module):
         init_opacity: float = 0.1,
         scale_multiplier: float = 1.0,
         device: torch.device | str = "cpu",
-    ) -> "GaussianModel":
+    ) -> GaussianModel:
         """Isotropic Gaussians at ``points`` [P, 3] with ``colors`` [P, 3] in [0, 1] (grey if None),
         scale = mean distance to the 3 nearest neighbours (as in 3DGS), opacity ``init_opacity``."""
         pts = torch.as_tensor(np.asarray(points), dtype=torch.float32, device=device)
@@ -115,7 +115,7 @@ class GaussianModel(nn.Module):
     @classmethod
     def random_in_box(
         cls, low: np.ndarray, high: np.ndarray, n: int, sh_degree: int = 3, seed: int = 0, **kwargs
-    ) -> "GaussianModel":
+    ) -> GaussianModel:
         """``n`` Gaussians uniformly in the box [low, high] with random colours."""
         g = torch.Generator().manual_seed(seed)
         lo, hi = torch.as_tensor(low, dtype=torch.float32), torch.as_tensor(high, dtype=torch.float32)
@@ -151,7 +151,7 @@ class GaussianModel(nn.Module):
         return {k: v.detach().clone() for k, v in self.params.items()}
 
     @classmethod
-    def from_state(cls, state: dict[str, torch.Tensor], sh_degree: int | None = None) -> "GaussianModel":
+    def from_state(cls, state: dict[str, torch.Tensor], sh_degree: int | None = None) -> GaussianModel:
         """Rebuild a model from ``state_tensors()`` (the SH degree follows from shN if not given)."""
         k = state["shN"].shape[1] + 1
         degree = int(round(k**0.5)) - 1 if sh_degree is None else sh_degree

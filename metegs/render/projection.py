@@ -80,7 +80,9 @@ def project_gaussians(
     ).reshape(-1, 2, 3)
 
     scales_safe = torch.where(finite[:, None], scales, torch.ones_like(scales))
-    quats_safe = torch.where(finite[:, None], quats, torch.tensor([1.0, 0, 0, 0], dtype=quats.dtype, device=quats.device))
+    quats_safe = torch.where(
+        finite[:, None], quats, torch.tensor([1.0, 0, 0, 0], dtype=quats.dtype, device=quats.device)
+    )
     cov3d = covariance_3d(quats_safe, scales_safe)
     JW = J @ R
     cov2 = JW @ cov3d @ JW.transpose(1, 2)
@@ -105,7 +107,9 @@ def project_gaussians(
         k = torch.full_like(a, 3.0)
         if opacities is not None:
             k = torch.sqrt(2.0 * torch.log((255.0 * opacities.detach()).clamp_min(1.0)))
-        extents = torch.stack([torch.ceil(k * torch.sqrt(a.clamp_min(0))), torch.ceil(k * torch.sqrt(c.clamp_min(0)))], -1)
+        extents = torch.stack(
+            [torch.ceil(k * torch.sqrt(a.clamp_min(0))), torch.ceil(k * torch.sqrt(c.clamp_min(0)))], -1
+        )
         extents = torch.nan_to_num(extents, nan=0.0, posinf=0.0).clamp_max(1e7)
         ex, ey = extents[:, 0], extents[:, 1]
         on_screen = (mx + ex > 0) & (mx - ex < width) & (my + ey > 0) & (my - ey < height) & (ex > 0) & (ey > 0)
@@ -117,5 +121,7 @@ def project_gaussians(
         depths=torch.where(keep, tz_safe, one),
         radii=radii,
         cov2d=torch.stack([a, b, c], dim=-1),
-        extents=torch.where(keep[:, None] & (extents.amin(dim=1, keepdim=True) > 0), extents, torch.zeros_like(extents)),
+        extents=torch.where(
+            keep[:, None] & (extents.amin(dim=1, keepdim=True) > 0), extents, torch.zeros_like(extents)
+        ),
     )

@@ -53,8 +53,12 @@ def bin_gaussians(
         counts = torch.where(extents.amin(dim=1) > 0, w * h, torch.zeros_like(w))
         total = int(counts.sum())
         if total == 0:
-            return TileBins(tiles_x, tiles_y, torch.zeros(0, dtype=torch.long, device=device),
-                            torch.zeros(tiles_x * tiles_y + 1, dtype=torch.long, device=device))
+            return TileBins(
+                tiles_x,
+                tiles_y,
+                torch.zeros(0, dtype=torch.long, device=device),
+                torch.zeros(tiles_x * tiles_y + 1, dtype=torch.long, device=device),
+            )
         gid = torch.repeat_interleave(torch.arange(n, device=device), counts)
         start = torch.cumsum(counts, 0) - counts
         local = torch.arange(total, device=device) - start[gid]

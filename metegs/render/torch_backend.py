@@ -50,7 +50,9 @@ def composite_tiles(
     P = TILE_SIZE * TILE_SIZE
     D = colors.shape[1]
     counts = bins.counts
-    iy, ix = torch.meshgrid(torch.arange(TILE_SIZE, device=device), torch.arange(TILE_SIZE, device=device), indexing="ij")
+    iy, ix = torch.meshgrid(
+        torch.arange(TILE_SIZE, device=device), torch.arange(TILE_SIZE, device=device), indexing="ij"
+    )
     tile_idx = torch.arange(tiles, device=device)
     pix_x = (tile_idx % bins.tiles_x)[:, None] * TILE_SIZE + ix.reshape(1, P) + 0.5  # [tiles, P]
     pix_y = (tile_idx // bins.tiles_x)[:, None] * TILE_SIZE + iy.reshape(1, P) + 0.5
@@ -114,8 +116,17 @@ class TorchRasterizer:
         viewmat = camera.world_to_cameras()[0].to(gaussians.means)
         K = camera.intrinsics()[0].to(gaussians.means)
         proj = project_gaussians(
-            gaussians.means, gaussians.quats, gaussians.scales, viewmat, K, width, height,
-            near=s.near, far=s.far, eps2d=s.eps2d, opacities=gaussians.opacities,
+            gaussians.means,
+            gaussians.quats,
+            gaussians.scales,
+            viewmat,
+            K,
+            width,
+            height,
+            near=s.near,
+            far=s.far,
+            eps2d=s.eps2d,
+            opacities=gaussians.opacities,
         )
         means2d = proj.means2d
         if means2d.requires_grad:
@@ -129,5 +140,13 @@ class TorchRasterizer:
         bg = s.background_tensor(color)
         rgb = color + (1.0 - alpha)[..., None] * bg
         depth = depth_sum / alpha.clamp_min(1e-10)
-        return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, radii=proj.radii, means2d=means2d,
-                            num_intersections=bins.num_intersections, width=width, height=height)
+        return RenderOutput(
+            rgb=rgb,
+            alpha=alpha,
+            depth=depth,
+            radii=proj.radii,
+            means2d=means2d,
+            num_intersections=bins.num_intersections,
+            width=width,
+            height=height,
+        )

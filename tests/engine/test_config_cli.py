@@ -32,7 +32,9 @@ def test_unknown_or_mistyped_fields_are_errors():
 
 
 def test_cli_flags_override_defaults():
-    cfg = parse_args(["3dgs", "--max-steps", "5", "--seed", "3", "--densify.grow-grad2d", "0.001", "--backend", "torch"])
+    cfg = parse_args(
+        ["3dgs", "--max-steps", "5", "--seed", "3", "--densify.grow-grad2d", "0.001", "--backend", "torch"]
+    )
     assert cfg.max_steps == 5 and cfg.seed == 3 and cfg.densify.grow_grad2d == 0.001 and cfg.backend == "torch"
     assert cfg.data is None and cfg.method == "3dgs"
 

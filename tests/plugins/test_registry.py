@@ -30,7 +30,8 @@ def fresh_plugins(monkeypatch):
 @pytest.fixture
 def plugin_module(tmp_path, monkeypatch):
     """A real importable plugin module that registers a method and a parser."""
-    (tmp_path / "fake_metegs_plugin.py").write_text(textwrap.dedent('''
+    (tmp_path / "fake_metegs_plugin.py").write_text(
+        textwrap.dedent('''
         from metegs.registry import registry
         from metegs.engine.config import TrainConfig
 
@@ -46,7 +47,8 @@ def plugin_module(tmp_path, monkeypatch):
             @staticmethod
             def can_parse(path):
                 return (path / "fake.marker").exists()
-    '''))
+    ''')
+    )
     monkeypatch.syspath_prepend(str(tmp_path))
     yield "fake_metegs_plugin"
     sys.modules.pop("fake_metegs_plugin", None)

@@ -60,8 +60,13 @@ def test_stopped_pixels_stay_stopped_across_chunks(chunk):
     n = 7
     means = torch.tensor([[0.0, 0.0, 2.0 + 0.1 * i] for i in range(n)], dtype=torch.float64)
     opac = torch.tensor([0.999, 0.999, 0.999, 0.3, 0.3, 0.3, 0.3], dtype=torch.float64)
-    g = GaussianSet(means, torch.tensor([[1.0, 0, 0, 0]] * n, dtype=torch.float64),
-                    torch.full((n, 3), 0.4, dtype=torch.float64), opac, torch.rand(n, 1, 3, dtype=torch.float64))
+    g = GaussianSet(
+        means,
+        torch.tensor([[1.0, 0, 0, 0]] * n, dtype=torch.float64),
+        torch.full((n, 3), 0.4, dtype=torch.float64),
+        opac,
+        torch.rand(n, 1, 3, dtype=torch.float64),
+    )
     cam = camera(16, 16)
     out = TorchRasterizer(chunk=chunk).render(g, cam)
     ref, ref_alpha = brute_force(g, cam, torch.zeros(3, dtype=torch.float64), 0)
@@ -73,9 +78,13 @@ def test_early_termination_with_opaque_stack():
     """Many nearly opaque Gaussians on one pixel: compositing stops once T would drop below 1e-4."""
     n = 12
     means = torch.tensor([[0.0, 0.0, 2.0 + 0.1 * i] for i in range(n)], dtype=torch.float64)
-    g = GaussianSet(means, torch.tensor([[1.0, 0, 0, 0]] * n, dtype=torch.float64),
-                    torch.full((n, 3), 0.5, dtype=torch.float64), torch.full((n,), 0.999, dtype=torch.float64),
-                    torch.rand(n, 1, 3, dtype=torch.float64))
+    g = GaussianSet(
+        means,
+        torch.tensor([[1.0, 0, 0, 0]] * n, dtype=torch.float64),
+        torch.full((n, 3), 0.5, dtype=torch.float64),
+        torch.full((n,), 0.999, dtype=torch.float64),
+        torch.rand(n, 1, 3, dtype=torch.float64),
+    )
     cam = camera(16, 16)
     out = TorchRasterizer().render(g, cam)
     ref, ref_alpha = brute_force(g, cam, torch.zeros(3, dtype=torch.float64), 0)
@@ -156,8 +165,13 @@ def test_expected_depth_of_a_single_opaque_layer():
     xs, ys = torch.meshgrid(torch.linspace(-2, 2, 21), torch.linspace(-2, 2, 21), indexing="ij")
     n = xs.numel()
     means = torch.stack([xs.flatten(), ys.flatten(), torch.full((n,), 3.0)], 1)
-    g = GaussianSet(means, torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1), torch.full((n, 3), 0.3),
-                    torch.full((n,), 0.9), torch.zeros(n, 1, 3))
+    g = GaussianSet(
+        means,
+        torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1),
+        torch.full((n, 3), 0.3),
+        torch.full((n,), 0.9),
+        torch.zeros(n, 1, 3),
+    )
     out = TorchRasterizer().render(g, camera(32, 24, f=20.0))
     solid = out.alpha > 0.99
     assert solid.float().mean() > 0.9
