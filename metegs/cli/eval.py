@@ -10,6 +10,7 @@ from typing import Literal
 import tyro
 from rich.console import Console
 
+from metegs.cli import run_cli
 from metegs.config import atomic_write_text
 from metegs.errors import MetegsError
 
@@ -61,8 +62,4 @@ def main(args: EvalArgs) -> dict:
 
 
 def entrypoint() -> None:
-    try:
-        main(tyro.cli(EvalArgs, prog="metegs-eval"))
-    except MetegsError as exc:
-        Console(stderr=True).print(f"[bold red]error:[/] {exc}")
-        raise SystemExit(2) from None
+    run_cli(lambda: main(tyro.cli(EvalArgs, prog="metegs-eval")))

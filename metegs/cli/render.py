@@ -11,7 +11,7 @@ import tyro
 from rich.console import Console
 from rich.progress import track
 
-from metegs.errors import MetegsError
+from metegs.cli import run_cli
 
 
 @dataclass
@@ -56,8 +56,4 @@ def main(args: RenderArgs) -> Path:
 
 
 def entrypoint() -> None:
-    try:
-        main(tyro.cli(RenderArgs, prog="metegs-render"))
-    except MetegsError as exc:
-        Console(stderr=True).print(f"[bold red]error:[/] {exc}")
-        raise SystemExit(2) from None
+    run_cli(lambda: main(tyro.cli(RenderArgs, prog="metegs-render")))

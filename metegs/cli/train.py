@@ -13,6 +13,7 @@ from typing import Any
 import tyro
 from rich.console import Console
 
+from metegs.cli import run_cli
 from metegs.config import apply_overrides, load_yaml
 from metegs.errors import MetegsError
 from metegs.registry import registry
@@ -103,11 +104,7 @@ def main(argv: list[str] | None = None) -> dict:
 
 
 def entrypoint() -> None:
-    try:
-        main()
-    except MetegsError as exc:
-        Console(stderr=True).print(f"[bold red]error:[/] {exc}")
-        raise SystemExit(2) from None
+    run_cli(main)
 
 
 if __name__ == "__main__":

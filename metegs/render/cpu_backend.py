@@ -27,9 +27,8 @@ from metegs.cameras import Cameras
 from metegs.errors import MetegsError
 from metegs.gaussians.model import GaussianSet
 from metegs.render.base import RenderOutput, RenderSettings
-from metegs.render.projection import project_gaussians
-from metegs.render.tiles import TileBins, bin_gaussians
-from metegs.render.torch_backend import gaussian_colors
+from metegs.render.pipeline import rasterize
+from metegs.render.tiles import TileBins
 
 SOURCE = Path(__file__).parent / "csrc" / "composite.cpp"
 _TORCH_TAG = "".join(ch if ch.isalnum() else "_" for ch in torch.__version__)
@@ -202,25 +201,4 @@ class CpuRasterizer:
         """Render one view. camera: a single view (len 1)."""
         if gaussians.means.device.type != "cpu":
             raise CpuExtensionError(f"the `cpu` rasteriser needs CPU tensors, got {gaussians.means.device}")
-        s = settings or RenderSettings()
-        width, height = int(camera.width[0]), int(camera.height[0])
-        viewmat = camera.world_to_cameras()[0].to(gaussians.means)
-        K = camera.intrinsics()[0].to(gaussians.means)
-        proj = project_gaussians(
-            gaussians.means, gaussians.quats, gaussians.scales, viewmat, K, width, height,
-            near=s.near, far=s.far, eps2d=s.eps2d, opacities=gaussians.opacities,
-        )
-        means2d = proj.means2d
-        if means2d.requires_grad:
-            means2d.retain_grad()
-        bins = bin_gaussians(means2d.detach(), proj.extents, proj.depths.detach(), width, height)
-        sh_degree = s.sh_degree if s.sh_degree is not None else int(round(gaussians.sh.shape[1] ** 0.5)) - 1
-        colors = gaussian_colors(gaussians, camera.centers[0].to(gaussians.means), sh_degree)
-        color, alpha, depth_sum = composite_tiles_cpu(
-            means2d, proj.conics, gaussians.opacities, colors, proj.depths, bins, width, height
-        )
-        bg = s.background_tensor(color)
-        rgb = color + (1.0 - alpha)[..., None] * bg
-        depth = depth_sum / alpha.clamp_min(1e-10)
-        return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, radii=proj.radii, means2d=means2d,
-                            num_intersections=bins.num_intersections, width=width, height=height)
+        return rasterize(gaussians, camera, settings, composite_tiles_cpu)

@@ -7,24 +7,15 @@ loop early, empty tiles cost nothing.
 
 from __future__ import annotations
 
+from functools import partial
+
 import torch
 
 from metegs.cameras import Cameras
 from metegs.gaussians.model import GaussianSet
-from metegs.gaussians.sh import eval_sh
 from metegs.render.base import ALPHA_MAX, ALPHA_MIN, T_MIN, RenderOutput, RenderSettings
-from metegs.render.projection import project_gaussians
-from metegs.render.tiles import TILE_SIZE, bin_gaussians
-
-
-def gaussian_colors(g: GaussianSet, campos: torch.Tensor, sh_degree: int) -> torch.Tensor:
-    """View-dependent colours. campos: [3] -> [N, 3], clamped at 0 (as 3DGS)."""
-    if g.sh.shape[1] == 1 or sh_degree == 0:
-        return (0.28209479177387814 * g.sh[:, 0] + 0.5).clamp_min(0.0)
-    d = g.means - campos
-    d = torch.where(torch.isfinite(d).all(dim=1, keepdim=True), d, torch.zeros_like(d))  # NaN means stay local
-    d = d / d.norm(dim=1, keepdim=True).clamp_min(1e-12)
-    return eval_sh(sh_degree, g.sh, d).clamp_min(0.0)
+from metegs.render.pipeline import rasterize
+from metegs.render.tiles import TILE_SIZE
 
 
 def composite_tiles(
@@ -111,42 +102,4 @@ class TorchRasterizer:
 
     def render(self, gaussians: GaussianSet, camera: Cameras, settings: RenderSettings | None = None) -> RenderOutput:
         """Render one view. camera: a single view (len 1)."""
-        s = settings or RenderSettings()
-        width, height = int(camera.width[0]), int(camera.height[0])
-        viewmat = camera.world_to_cameras()[0].to(gaussians.means)
-        K = camera.intrinsics()[0].to(gaussians.means)
-        proj = project_gaussians(
-            gaussians.means,
-            gaussians.quats,
-            gaussians.scales,
-            viewmat,
-            K,
-            width,
-            height,
-            near=s.near,
-            far=s.far,
-            eps2d=s.eps2d,
-            opacities=gaussians.opacities,
-        )
-        means2d = proj.means2d
-        if means2d.requires_grad:
-            means2d.retain_grad()
-        bins = bin_gaussians(means2d.detach(), proj.extents, proj.depths.detach(), width, height)
-        sh_degree = s.sh_degree if s.sh_degree is not None else int(round(gaussians.sh.shape[1] ** 0.5)) - 1
-        colors = gaussian_colors(gaussians, camera.centers[0].to(gaussians.means), sh_degree)
-        color, alpha, depth_sum = composite_tiles(
-            means2d, proj.conics, gaussians.opacities, colors, proj.depths, bins, width, height, self.chunk
-        )
-        bg = s.background_tensor(color)
-        rgb = color + (1.0 - alpha)[..., None] * bg
-        depth = depth_sum / alpha.clamp_min(1e-10)
-        return RenderOutput(
-            rgb=rgb,
-            alpha=alpha,
-            depth=depth,
-            radii=proj.radii,
-            means2d=means2d,
-            num_intersections=bins.num_intersections,
-            width=width,
-            height=height,
-        )
+        return rasterize(gaussians, camera, settings, partial(composite_tiles, chunk=self.chunk))

@@ -2,7 +2,7 @@
 
 import torch
 
-from metegs.densify.adc import ADCConfig, AdaptiveDensityControl
+from metegs.densify.adc import AdaptiveDensityControl, ADCConfig
 from metegs.engine.optim import OptimConfig, make_optimizers
 from metegs.gaussians.model import GaussianModel, inverse_sigmoid
 from metegs.render.base import RenderOutput

@@ -15,18 +15,20 @@ from metegs.render import RenderSettings
 
 
 def tiny_config(tmp_path, **kw) -> TrainConfig:
-    ds = DatasetConfig(synthetic=SyntheticSceneConfig(width=48, height=36, num_views=16, num_points=800))
+    ds = DatasetConfig(synthetic=SyntheticSceneConfig(width=64, height=48, num_views=16, num_points=800))
     return TrainConfig(
-        max_steps=30,
+        max_steps=60,
         output_dir=tmp_path,
         experiment_name="run",
-        backend="torch",
+        backend="auto",
         device="cpu",
         progress=False,
         dataset=ds,
-        checkpoint_every=15,
+        checkpoint_every=30,
         eval_every=0.5,
-        densify=ADCConfig(reset_every=0.0),  # an opacity reset every 3 steps would make a 30-step run meaningless
+        # A 60-step run at 64x48: an opacity reset every 6 steps would be meaningless, and tiny images cross
+        # the gradient threshold so often that growth needs a budget (which this also exercises).
+        densify=ADCConfig(reset_every=0.0, max_gaussians=2000),
         **kw,
     )
 
@@ -48,23 +50,24 @@ def test_run_folder_contents(trained):
         "config.yml",
         "metrics.json",
         "scene.ply",
-        "checkpoints/step-000015.ckpt",
         "checkpoints/step-000030.ckpt",
+        "checkpoints/step-000060.ckpt",
     ):
         assert (run / name).is_file(), name
     assert sorted(p.name for p in (run / "renders" / "test").glob("*.png"))
     saved = json.loads((run / "metrics.json").read_text())
-    assert saved["steps"] == 30 and saved["backend"] == "torch"
+    assert saved["steps"] == 60 and saved["backend"] in ("cpu", "torch")
     assert saved["psnr"] == pytest.approx(metrics["psnr"])
     assert saved["lpips"] is None or isinstance(saved["lpips"], float)
     if saved["lpips"] is None:
         assert saved["lpips_reason"]
-    assert [h["step"] for h in saved["history"]] == [15, 30]
+    assert [h["step"] for h in saved["history"]] == [30, 60]
 
 
 def test_training_improves_over_initialisation(trained):
     trainer, metrics = trained
-    assert metrics["psnr"] > trainer.initial_psnr + 1.0
+    assert metrics["psnr"] > trainer.initial_psnr + 2.0  # measured: 10.3 -> 13.8 dB
+    assert len(trainer.model) == 2000  # grew to the budget, not beyond
 
 
 def test_scene_ply_reimports_to_identical_renders(trained):
@@ -81,13 +84,13 @@ def test_scene_ply_reimports_to_identical_renders(trained):
 
 def test_resume_from_checkpoint_continues_the_step_count(trained, tmp_path):
     trainer, _ = trained
-    ckpt = trainer.run_dir / "checkpoints" / "step-000015.ckpt"
-    cfg = replace(tiny_config(tmp_path), load_checkpoint=ckpt, max_steps=20)
+    ckpt = trainer.run_dir / "checkpoints" / "step-000030.ckpt"
+    cfg = replace(tiny_config(tmp_path), load_checkpoint=ckpt, max_steps=40)
     resumed = cfg.setup()
-    assert resumed.step == 15
+    assert resumed.step == 30
     assert len(resumed.model) == resumed.optimizers["means"].param_groups[0]["params"][0].shape[0]
     metrics = resumed.train()
-    assert metrics["steps"] == 20
+    assert metrics["steps"] == 40
 
 
 def test_load_run_and_eval_cli(trained):

@@ -10,9 +10,10 @@ from metegs.gaussians.model import GaussianSet
 from metegs.render import cpu_backend
 from metegs.render.base import ALPHA_MAX, ALPHA_MIN, T_MIN, RenderSettings
 from metegs.render.cpu_backend import CompositeTiles, CpuBackendWarning, CpuExtensionError, CpuRasterizer
+from metegs.render.pipeline import gaussian_colors
 from metegs.render.projection import project_gaussians
 from metegs.render.tiles import bin_gaussians
-from metegs.render.torch_backend import TorchRasterizer, gaussian_colors
+from metegs.render.torch_backend import TorchRasterizer
 from metegs.testing import camera, random_scene
 
 try:

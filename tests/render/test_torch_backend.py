@@ -7,8 +7,9 @@ import torch
 
 from metegs.gaussians.model import GaussianSet
 from metegs.render.base import ALPHA_MAX, ALPHA_MIN, T_MIN, RenderSettings
+from metegs.render.pipeline import gaussian_colors
 from metegs.render.projection import project_gaussians
-from metegs.render.torch_backend import TorchRasterizer, gaussian_colors
+from metegs.render.torch_backend import TorchRasterizer
 from metegs.testing import camera, random_scene
 
 

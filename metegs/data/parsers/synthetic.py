@@ -13,6 +13,8 @@ ray parameter ``t`` of a hit *is* its z-depth along the optical axis.
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import ClassVar
@@ -211,8 +213,16 @@ def intersect_sphere(o: np.ndarray, d: np.ndarray, center: np.ndarray, radius: f
 
 
 def intersect_box(o: np.ndarray, d: np.ndarray, box: Box) -> tuple[np.ndarray, np.ndarray]:
-    """Rays vs a box (slab method, from outside) -> t [R] (inf if missed), outward world normals [R, 3]."""
-    ol, dl = box.to_local(o - box.center), box.to_local(d)
+    """Rays vs a box (slab method, from outside) -> t [R] (inf if missed), outward world normals [R, 3].
+
+    Only rays that hit the box's bounding sphere run the slab test (most rays miss most boxes).
+    """
+    t = np.full(len(o), np.inf)
+    normal = np.zeros((len(o), 3))
+    candidates = np.flatnonzero(np.isfinite(intersect_sphere(o, d, box.center, float(np.linalg.norm(box.half)))))
+    if candidates.size == 0:
+        return t, normal
+    ol, dl = box.to_local(o[candidates] - box.center), box.to_local(d[candidates])
     with np.errstate(divide="ignore", invalid="ignore"):
         inv = 1.0 / dl
         t1, t2 = (-box.half - ol) * inv, (box.half - ol) * inv
@@ -220,10 +230,12 @@ def intersect_box(o: np.ndarray, d: np.ndarray, box: Box) -> tuple[np.ndarray, n
     t_near, t_far = np.nanmax(t_min, axis=1), np.nanmin(t_max, axis=1)
     hit = (t_near <= t_far) & (t_near > EPS)
     axis = np.argmax(np.nan_to_num(t_min, nan=-np.inf), axis=1)
-    normal = np.zeros_like(ol)
+    local_normal = np.zeros_like(ol)
     rows = np.arange(len(ol))
-    normal[rows, axis] = -np.sign(dl[rows, axis])
-    return np.where(hit, t_near, np.inf), box.to_world(normal)
+    local_normal[rows, axis] = -np.sign(dl[rows, axis])
+    t[candidates] = np.where(hit, t_near, np.inf)
+    normal[candidates] = box.to_world(local_normal)
+    return t, normal
 
 
 @dataclass
@@ -439,12 +451,10 @@ def build_scene(cfg: SyntheticSceneConfig, test_every: int = 8) -> SceneData:
     poses = orbit_poses(cfg.num_views, rng).astype(np.float32).astype(np.float64)
     fx = float(np.float32(0.5 * cfg.width / np.tan(np.radians(HFOV_DEG) / 2)))
     cx, cy = cfg.width / 2.0, cfg.height / 2.0
-    images, depths, rays = [], [], []
-    for c2w in poses:
-        image, depth, d = render_view(scene, c2w, fx, cx, cy, cfg.width, cfg.height)
-        images.append(image)
-        depths.append(depth)
-        rays.append(d)
+    # Views are independent and numpy releases the GIL in its array loops: render them on all cores.
+    with ThreadPoolExecutor(max_workers=min(len(poses), os.cpu_count() or 1)) as pool:
+        rendered = list(pool.map(lambda c2w: render_view(scene, c2w, fx, cx, cy, cfg.width, cfg.height), poses))
+    images, depths, rays = (list(x) for x in zip(*rendered))
     train, test = split_every_nth(cfg.num_views, test_every)
     points, colors = sample_points(scene, poses, rays, train or test, cfg.num_points, rng)
     cameras = Cameras.create(poses.astype(np.float32), fx, fx, cx, cy, cfg.width, cfg.height, EXPOSURE_TIME_S)
