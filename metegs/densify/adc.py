@@ -39,9 +39,11 @@ class ADCConfig(InstantiateConfig):
     refine_stop: float = 15000 / 30000
     """End of refinement, as a fraction of the run."""
     refine_every: int = 100
-    """Refine every this many steps (fewer for very short runs so that at least 10 refinements happen)."""
+    """Refine every this many steps; shorter runs refine more often (about 10 times in the window), but never
+    more than once per pass over the training views, so the averaged gradients see every view."""
     reset_every: float = 3000 / 30000
-    """Opacity reset period, as a fraction of the run (0 disables)."""
+    """Opacity reset period, as a fraction of the run (0 disables); skipped when fewer than 3 refinements fit
+    between resets (opacities need them to recover)."""
     reset_opacity: float = 0.01
     """Opacities are reset to min(opacity, this)."""
     pause_after_reset: int = 0
@@ -66,14 +68,15 @@ class DensifyState:
 class AdaptiveDensityControl:
     """Grows and prunes scene Gaussians from the 2D-mean gradients of the renders."""
 
-    def __init__(self, config: ADCConfig, max_steps: int, extent: float):
+    def __init__(self, config: ADCConfig, max_steps: int, extent: float, num_train_views: int = 1):
         self.config = config
         self.extent = extent
         c = config
         self.start_step = int(round(c.refine_start * max_steps))
         self.stop_step = int(round(c.refine_stop * max_steps))
-        self.every = max(1, min(c.refine_every, (self.stop_step - self.start_step) // 10 or 1))
-        self.reset_every = int(round(c.reset_every * max_steps)) if c.reset_every > 0 else 0
+        self.every = max(num_train_views, 1, min(c.refine_every, (self.stop_step - self.start_step) // 10))
+        reset = int(round(c.reset_every * max_steps)) if c.reset_every > 0 else 0
+        self.reset_every = reset if reset >= 3 * self.every else 0
         self.state: DensifyState | None = None
 
     def schedule(self) -> dict[str, int]:

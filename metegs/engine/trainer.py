@@ -64,7 +64,9 @@ class Trainer:
         self.extent = scene_extent(self.dataset.cameras[self.dataset.train_indices])
         self.model = self._initial_model()
         self.optimizers = make_optimizers(self.model.params, config.optim, self.extent)
-        self.densifier = config.densify.setup(max_steps=config.max_steps, extent=self.extent)
+        self.densifier = config.densify.setup(
+            max_steps=config.max_steps, extent=self.extent, num_train_views=len(self.dataset.train_indices)
+        )
         self.loss_fn = config.loss.setup()
         self.step = 0
         self.history: list[dict] = []

@@ -41,7 +41,17 @@ def test_schedule_is_a_fraction_of_the_run():
     adc = AdaptiveDensityControl(ADCConfig(), max_steps=30000, extent=1.0)
     assert adc.schedule() == {"start": 500, "stop": 15000, "every": 100, "reset_every": 3000}
     short = AdaptiveDensityControl(ADCConfig(), max_steps=300, extent=1.0).schedule()
-    assert short["every"] == 14  # at least 10 refinements even in a short run
+    assert short["every"] == 14  # about 10 refinements even in a short run
+    assert short["reset_every"] == 0  # 30-step reset periods would leave no time to recover
+
+
+def test_refinement_waits_for_a_pass_over_the_views():
+    adc = AdaptiveDensityControl(ADCConfig(), max_steps=3000, extent=1.0, num_train_views=42)
+    assert adc.schedule() == {"start": 50, "stop": 1500, "every": 100, "reset_every": 300}
+    adc = AdaptiveDensityControl(ADCConfig(), max_steps=600, extent=1.0, num_train_views=42)
+    assert adc.schedule()["every"] == 42 and adc.schedule()["reset_every"] == 0
+    adc = AdaptiveDensityControl(ADCConfig(), max_steps=50, extent=1.0, num_train_views=42)
+    assert adc.schedule()["every"] == 42 > adc.schedule()["stop"]  # too short to refine at all
 
 
 def test_clone_small_split_large_keep_quiet():
