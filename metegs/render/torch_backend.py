@@ -48,9 +48,12 @@ def composite_tiles(
     pix_x = (tile_idx % bins.tiles_x)[:, None] * TILE_SIZE + ix.reshape(1, P) + 0.5  # [tiles, P]
     pix_y = (tile_idx // bins.tiles_x)[:, None] * TILE_SIZE + iy.reshape(1, P) + 0.5
 
-    color = torch.zeros(tiles, P, D, device=device, dtype=dtype)
-    depth = torch.zeros(tiles, P, device=device, dtype=dtype)
-    T = torch.ones(tiles, P, device=device, dtype=dtype)
+    # Empty slices sum to an exact 0 that keeps the outputs in the autograd graph (zero gradients, never NaN),
+    # so a view that sees no Gaussian still backpropagates.
+    anchor = sum(t[:0].sum() for t in (means2d, conics, opacities, colors, depths))
+    color = torch.zeros(tiles, P, D, device=device, dtype=dtype) + anchor
+    depth = torch.zeros(tiles, P, device=device, dtype=dtype) + anchor
+    T = torch.ones(tiles, P, device=device, dtype=dtype) + anchor
     done = torch.zeros(tiles, P, device=device, dtype=torch.bool)  # pixels that stopped compositing
     active = (counts > 0).nonzero().flatten()
     start = 0
