@@ -34,6 +34,7 @@ class DatasetConfig:
     undistort: bool = True
     """Undistort COLMAP views with distorted camera models (else they are refused with an error)."""
     use_masks: bool = False
-    """Composite masked-out pixels to the background colour when the scene ships masks."""
+    """When the scene ships masks (white = keep), train and evaluate against photos whose masked-out pixels
+    take the background colour (object-only reconstruction)."""
     synthetic: SyntheticSceneConfig = field(default_factory=SyntheticSceneConfig)
     """Options of the synthetic scene used when no `--data` is given."""

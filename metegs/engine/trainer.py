@@ -109,10 +109,19 @@ class Trainer:
         every = max(1, int(round(self.config.model.sh_degree_every * self.config.max_steps)))
         return min(step // every, self.model.max_sh_degree)
 
-    def render(self, index: int, training: bool = False):
+    def render(self, index: int, training: bool = False, background: torch.Tensor | None = None):
         """Render dataset view ``index`` with the current model."""
-        settings = RenderSettings(background=self.background(training), sh_degree=self.model.active_sh_degree)
+        bg = self.background(training) if background is None else background
+        settings = RenderSettings(background=bg, sh_degree=self.model.active_sh_degree)
         return self.rasterizer.render(self.model.activated(), self.dataset.cameras[index], settings)
+
+    def target(self, index: int, background: torch.Tensor) -> torch.Tensor:
+        """The photo of view ``index`` [H, W, 3]; with masks, masked-out pixels take the background colour."""
+        image = self.dataset.images[index]
+        if self.dataset.masks is None:
+            return image
+        m = self.dataset.masks[index][..., None]
+        return image * m + background * (1.0 - m)
 
     def train_step(self, index: int) -> dict[str, float]:
         """Render one training view, backpropagate, update the parameters and densify on schedule."""
@@ -120,8 +129,9 @@ class Trainer:
         self.optimizers["means"].param_groups[0]["lr"] = means_lr_at(
             self.step, self.config.max_steps, self.config.optim, self.extent
         )
-        out = self.render(index, training=True)
-        target = self.dataset.images[index]
+        bg = self.background(training=True)
+        out = self.render(index, background=bg)
+        target = self.target(index, bg)
         loss = self.loss_fn(out.rgb, target)
         loss.backward()
         self.densifier.update_stats(self.model, out)
@@ -171,8 +181,9 @@ class Trainer:
 
         idx = self.dataset.test_indices or self.dataset.train_indices
         preds = self.render_views(idx)
+        bg = self.background(training=False)
         lpips_model, reason = (None, "skipped during training") if quick else self._lpips()
-        m = evaluate_images(preds, [self.dataset.images[i] for i in idx], lpips_model=lpips_model, lpips_reason=reason)
+        m = evaluate_images(preds, [self.target(i, bg) for i in idx], lpips_model=lpips_model, lpips_reason=reason)
         entry = {
             "step": self.step,
             "train_seconds": round(self.train_seconds, 3),
@@ -233,7 +244,7 @@ class Trainer:
         for i, img in zip(indices, self.render_views(indices)):
             name = Path(self.dataset.names[i]).stem
             save_image(folder / f"{name}.png", img)
-            save_image(folder / f"{name}_gt.png", self.dataset.images[i])
+            save_image(folder / f"{name}_gt.png", self.target(i, self.background(training=False)))
 
     # --- checkpoints -------------------------------------------------------------------------------
     def save(self) -> Path:

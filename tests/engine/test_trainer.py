@@ -119,3 +119,20 @@ def test_missing_data_folder_is_a_clear_error(tmp_path):
 
     with pytest.raises(DataError, match="does not exist"):
         replace(tiny_config(tmp_path), data=tmp_path / "nowhere").setup()
+
+
+def test_masks_replace_masked_out_pixels_by_the_background(tmp_path):
+    trainer = replace(tiny_config(tmp_path), background="white").setup()
+    ds = trainer.dataset
+    assert ds.masks is None
+    assert trainer.target(0, torch.ones(3)) is ds.images[0]
+    ds.masks = [torch.zeros_like(img[..., 0]) for img in ds.images]
+    ds.masks[0][:, : img_w(ds) // 2] = 1.0
+    t = trainer.target(0, torch.ones(3))
+    half = img_w(ds) // 2
+    assert torch.equal(t[:, :half], ds.images[0][:, :half]) and (t[:, half:] == 1.0).all()
+    assert trainer.train_step(0)["loss"] >= 0
+
+
+def img_w(ds) -> int:
+    return int(ds.cameras.width[0])
