@@ -79,14 +79,14 @@ class Box:
     """Pattern period (m)."""
 
     def to_local(self, v: np.ndarray) -> np.ndarray:
-        """World vectors [R, 3] -> box axes [R, 3] (rotation only)."""
+        """World vectors [..., 3] -> box axes [..., 3] (rotation only)."""
         c, s = np.cos(self.yaw), np.sin(self.yaw)
-        return np.stack([c * v[:, 0] + s * v[:, 1], -s * v[:, 0] + c * v[:, 1], v[:, 2]], axis=1)
+        return np.stack([c * v[..., 0] + s * v[..., 1], -s * v[..., 0] + c * v[..., 1], v[..., 2]], axis=-1)
 
     def to_world(self, v: np.ndarray) -> np.ndarray:
-        """Box-axis vectors [R, 3] -> world [R, 3] (rotation only)."""
+        """Box-axis vectors [..., 3] -> world [..., 3] (rotation only)."""
         c, s = np.cos(self.yaw), np.sin(self.yaw)
-        return np.stack([c * v[:, 0] - s * v[:, 1], s * v[:, 0] + c * v[:, 1], v[:, 2]], axis=1)
+        return np.stack([c * v[..., 0] - s * v[..., 1], s * v[..., 0] + c * v[..., 1], v[..., 2]], axis=-1)
 
 
 @dataclass
@@ -105,15 +105,16 @@ class Sphere:
 
 
 class ValueNoise:
-    """Smooth 3D value noise: random values on a periodic integer lattice, smoothstep-trilinear in between."""
+    """Smooth value noise: random values on a periodic integer lattice, smoothstep-interpolated in between."""
 
     SIZE = 64
 
     def __init__(self, rng: np.random.Generator):
-        self.table = rng.random((self.SIZE,) * 3)
+        self.table = rng.random(self.SIZE**3)
+        """[SIZE^3] flattened lattice values (the first SIZE^2 also serve as the 2D lattice)."""
 
     def __call__(self, p: np.ndarray, freq: float, octaves: int = 2) -> np.ndarray:
-        """Points [R, 3] (m), base frequency (1/m) -> values [R] in [0, 1] (mean 0.5)."""
+        """Points [R, 2] or [R, 3] (m), base frequency (1/m) -> values [R] in [0, 1] (mean 0.5)."""
         total, norm, amp = np.zeros(len(p)), 0.0, 1.0
         for o in range(octaves):
             total += amp * self._octave(p * (freq * 2.0**o) + 17.3 * o)
@@ -122,17 +123,21 @@ class ValueNoise:
         return total / norm
 
     def _octave(self, q: np.ndarray) -> np.ndarray:
+        """Lattice coordinates [R, D] (D = 2 or 3) -> interpolated lattice values [R]."""
         i0 = np.floor(q)
         f = q - i0
         s = f * f * (3.0 - 2.0 * f)
         i0 = i0.astype(np.int64) % self.SIZE
         i1 = (i0 + 1) % self.SIZE
-        out = np.zeros(len(q))
-        for cx, wx in ((i0[:, 0], 1 - s[:, 0]), (i1[:, 0], s[:, 0])):
-            for cy, wy in ((i0[:, 1], 1 - s[:, 1]), (i1[:, 1], s[:, 1])):
-                for cz, wz in ((i0[:, 2], 1 - s[:, 2]), (i1[:, 2], s[:, 2])):
-                    out += wx * wy * wz * self.table[cx, cy, cz]
-        return out
+        # Corners are visited axis by axis: (flat index, weight) pairs double with each axis.
+        corners = [(np.zeros(len(q), dtype=np.int64), np.ones(len(q)))]
+        for axis in range(q.shape[1]):
+            corners = [
+                (idx * self.SIZE + i[:, axis], w * ws)
+                for idx, w in corners
+                for i, ws in ((i0, 1.0 - s[:, axis]), (i1, s[:, axis]))
+            ]
+        return sum(w * np.take(self.table, idx) for idx, w in corners)
 
 
 @dataclass
@@ -149,7 +154,7 @@ class Scene:
 
 
 def make_scene(rng: np.random.Generator) -> Scene:
-    """Seeded layout: 4 boxes and 4 spheres on the plaza (within 4.5 m of the origin), not overlapping."""
+    """Seeded layout: 4 boxes and 4 spheres on the plaza (within 4.8 m of the origin), not overlapping."""
     placed: list[tuple[np.ndarray, float]] = []  # (xy centre, footprint radius)
 
     def place(radius: float) -> np.ndarray:
@@ -192,50 +197,84 @@ def make_scene(rng: np.random.Generator) -> Scene:
 # ------------------------------------------------------------------------------------- intersection
 
 
-def intersect_ground(o: np.ndarray, d: np.ndarray) -> np.ndarray:
-    """Rays o [R, 3], d [R, 3] vs the plane z = 0 -> t [R] (inf where missed)."""
+def dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise dot product of [R, 3] and [R, 3] or [3] arrays -> [R] (or a scalar for two [3] vectors)."""
+    if a.ndim == 1 or b.ndim == 1:
+        return a @ b if b.ndim == 1 else b @ a
+    return np.einsum("ij,ij->i", a, b)
+
+
+def rows(x: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """``x[idx]`` for per-ray arrays [R, 3]; a shared vector [3] is returned as it is."""
+    return x if x.ndim == 1 else x[idx]
+
+
+class Rays:
+    """R rays o + t d. Either ``o`` or ``d`` may be one shared vector [3] (a camera centre, the sun direction).
+
+    Directions need not be unit length: ``t`` is measured in units of |d|.
+    """
+
+    def __init__(self, o: np.ndarray, d: np.ndarray):
+        self.o, self.d = o, d
+        self.n = max(len(x) if x.ndim == 2 else 1 for x in (o, d))
+        self.dd = dot(d, d)
+        """[R] (or scalar) squared direction lengths."""
+        if o.ndim == 2 and d.ndim == 1:  # shadow rays: precompute what every sphere test needs
+            self.od, self.oo = o @ d, dot(o, o)
+
+    def subset(self, idx: np.ndarray) -> Rays:
+        return Rays(rows(self.o, idx), rows(self.d, idx))
+
+
+def intersect_ground(rays: Rays) -> np.ndarray:
+    """Rays vs the plane z = 0 -> t [R] (inf where missed)."""
     with np.errstate(divide="ignore", invalid="ignore"):
-        t = -o[:, 2] / d[:, 2]
+        t = np.broadcast_to(-rays.o[..., 2] / rays.d[..., 2], (rays.n,))
     return np.where(np.isfinite(t) & (t > EPS), t, np.inf)
 
 
-def intersect_sphere(o: np.ndarray, d: np.ndarray, center: np.ndarray, radius: float) -> np.ndarray:
-    """Rays vs a sphere -> t [R] of the first hit in front of the origin (the far one from inside), inf if none."""
-    oc = o - center
-    a = np.einsum("ij,ij->i", d, d)
-    b = np.einsum("ij,ij->i", d, oc)
-    c = np.einsum("ij,ij->i", oc, oc) - radius * radius
-    disc = b * b - a * c
-    root = np.sqrt(np.maximum(disc, 0.0))
+def intersect_sphere(rays: Rays, center: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """Rays vs a sphere -> (indices [K] of the rays that hit it in front of their origin, their t [K]).
+
+    From outside the near root is returned, from inside (the sky dome) the far one.
+    """
+    if rays.o.ndim == 2 and rays.d.ndim == 1:  # shared direction: expand |o - c|^2 (cheaper, precise enough)
+        b = rays.od - center @ rays.d
+        c = rays.oo - 2.0 * (rays.o @ center) + (center @ center - radius * radius)
+    else:
+        oc = rays.o - center
+        b, c = dot(rays.d, oc), dot(oc, oc) - radius * radius
+    disc = b * b - rays.dd * c
+    idx = np.flatnonzero(disc >= 0)
+    b, disc, a = b[idx], disc[idx], rays.dd if np.ndim(rays.dd) == 0 else rays.dd[idx]
+    root = np.sqrt(disc)
     t_near, t_far = (-b - root) / a, (-b + root) / a
     t = np.where(t_near > EPS, t_near, t_far)
-    return np.where((disc >= 0) & (t > EPS), t, np.inf)
+    front = t > EPS
+    return idx[front], t[front]
 
 
-def intersect_box(o: np.ndarray, d: np.ndarray, box: Box) -> tuple[np.ndarray, np.ndarray]:
-    """Rays vs a box (slab method, from outside) -> t [R] (inf if missed), outward world normals [R, 3].
+def intersect_box(rays: Rays, box: Box) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rays vs a box (slab method, from outside) -> (ray indices [K], t [K], outward world normals [K, 3]).
 
-    Only rays that hit the box's bounding sphere run the slab test (most rays miss most boxes).
+    Only the rays that hit the box's bounding sphere run the slab test (most rays miss most boxes).
     """
-    t = np.full(len(o), np.inf)
-    normal = np.zeros((len(o), 3))
-    candidates = np.flatnonzero(np.isfinite(intersect_sphere(o, d, box.center, float(np.linalg.norm(box.half)))))
-    if candidates.size == 0:
-        return t, normal
-    ol, dl = box.to_local(o[candidates] - box.center), box.to_local(d[candidates])
+    idx, _ = intersect_sphere(rays, box.center, float(np.linalg.norm(box.half)))
+    ol = box.to_local(rows(rays.o, idx) - box.center)
+    dl = box.to_local(rows(rays.d, idx))
+    ol, dl = np.broadcast_arrays(ol.reshape(-1, 3), dl.reshape(-1, 3))
     with np.errstate(divide="ignore", invalid="ignore"):
         inv = 1.0 / dl
         t1, t2 = (-box.half - ol) * inv, (box.half - ol) * inv
     t_min, t_max = np.minimum(t1, t2), np.maximum(t1, t2)
     t_near, t_far = np.nanmax(t_min, axis=1), np.nanmin(t_max, axis=1)
     hit = (t_near <= t_far) & (t_near > EPS)
-    axis = np.argmax(np.nan_to_num(t_min, nan=-np.inf), axis=1)
-    local_normal = np.zeros_like(ol)
-    rows = np.arange(len(ol))
-    local_normal[rows, axis] = -np.sign(dl[rows, axis])
-    t[candidates] = np.where(hit, t_near, np.inf)
-    normal[candidates] = box.to_world(local_normal)
-    return t, normal
+    axis = np.argmax(np.nan_to_num(t_min[hit], nan=-np.inf), axis=1)
+    local_normal = np.zeros((len(axis), 3))
+    k = np.arange(len(axis))
+    local_normal[k, axis] = -np.sign(dl[hit][k, axis])
+    return idx[hit], t_near[hit], box.to_world(local_normal)
 
 
 @dataclass
@@ -253,36 +292,40 @@ class Hit:
 
 
 def trace(scene: Scene, o: np.ndarray, d: np.ndarray) -> Hit:
-    """Nearest hit of every ray o [R, 3] + t d [R, 3] among ground, boxes, spheres and the sky dome."""
-    n = len(d)
-    t = intersect_sphere(o, d, np.zeros(3), DOME_RADIUS)
-    material = np.full(n, SKY)
-    normal = np.zeros((n, 3))
-    tg = intersect_ground(o, d)
-    closer = tg < t
-    t, material[closer], normal[closer] = np.where(closer, tg, t), GROUND, (0.0, 0.0, 1.0)
+    """Nearest hit of every ray o + t d (o: [R, 3] or one shared origin [3]; d: [R, 3]) among the ground,
+    boxes, spheres and the sky dome (which encloses everything, so every ray hits)."""
+    rays = Rays(o, d)
+    t = np.full(rays.n, np.inf)
+    idx, t_dome = intersect_sphere(rays, np.zeros(3), DOME_RADIUS)
+    t[idx] = t_dome
+    material = np.full(rays.n, SKY)
+    t_ground = intersect_ground(rays)
+    closer = t_ground < t
+    t[closer], material[closer] = t_ground[closer], GROUND
+    normal = np.zeros((rays.n, 3))
+    normal[closer, 2] = 1.0
     for k, box in enumerate(scene.boxes):
-        tb, nb = intersect_box(o, d, box)
-        closer = tb < t
-        t, material[closer], normal[closer] = np.where(closer, tb, t), 2 + k, nb[closer]
+        idx, tb, nb = intersect_box(rays, box)
+        closer = tb < t[idx]
+        idx = idx[closer]
+        t[idx], material[idx], normal[idx] = tb[closer], 2 + k, nb[closer]
     for k, sph in enumerate(scene.spheres):
-        ts = intersect_sphere(o, d, sph.center, sph.radius)
-        closer = ts < t
-        t, material[closer] = np.where(closer, ts, t), 2 + len(scene.boxes) + k
-        point = o[closer] + ts[closer, None] * d[closer]
-        normal[closer] = (point - sph.center) / sph.radius
+        idx, ts = intersect_sphere(rays, sph.center, sph.radius)
+        closer = ts < t[idx]
+        idx, ts = idx[closer], ts[closer]
+        t[idx], material[idx] = ts, 2 + len(scene.boxes) + k
+        normal[idx] = (rows(o, idx) + ts[:, None] * d[idx] - sph.center) / sph.radius
     return Hit(t, o + t[:, None] * d, normal, material)
 
 
 def in_shadow(scene: Scene, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
     """[R] bool: the sun is blocked by a box or sphere (the ground and the dome never cast shadows)."""
-    o = points + 1e-4 * normals
-    d = np.broadcast_to(SUN_DIR, o.shape)
-    blocked = np.zeros(len(o), dtype=bool)
+    rays = Rays(points + 1e-4 * normals, SUN_DIR)
+    blocked = np.zeros(len(points), dtype=bool)
     for box in scene.boxes:
-        blocked |= np.isfinite(intersect_box(o, d, box)[0])
+        blocked[intersect_box(rays, box)[0]] = True
     for sph in scene.spheres:
-        blocked |= np.isfinite(intersect_sphere(o, d, sph.center, sph.radius))
+        blocked[intersect_sphere(rays, sph.center, sph.radius)[0]] = True
     return blocked
 
 
@@ -303,13 +346,17 @@ def smoothstep(e0: float, e1: float, x: np.ndarray) -> np.ndarray:
 def ground_albedo(scene: Scene, p: np.ndarray) -> np.ndarray:
     """Ground points [R, 3] -> albedo [R, 3]: checker-tiled plaza (radius ~6.5 m) fading into a lawn."""
     tile_a, tile_b, lawn_a, lawn_b = scene.ground_colors
-    grain = scene.noise(p + 100.0, 1.2, 2)[:, None]
-    tiles = soft_checker(p[:, 0], p[:, 1], 1.0)[:, None]
-    plaza = (tile_b + (tile_a - tile_b) * tiles) * (0.9 + 0.2 * grain)
-    lawn = lawn_a + (lawn_b - lawn_a) * scene.noise(p + 200.0, 0.35, 3)[:, None]
+    p = p[:, :2]  # 2D noise on the plane
     edge = 6.5 + 0.8 * (scene.noise(p + 300.0, 0.4, 1) - 0.5)
     w = smoothstep(edge - 0.4, edge + 0.4, np.hypot(p[:, 0], p[:, 1]))[:, None]
-    return plaza * (1 - w) + lawn * w
+    out = np.zeros((len(p), 3))
+    near, far = np.flatnonzero(w[:, 0] < 1.0), np.flatnonzero(w[:, 0] > 0.0)
+    q = p[near]
+    tiles = soft_checker(q[:, 0], q[:, 1], 1.0)[:, None]
+    grain = scene.noise(q + 100.0, 1.2, 2)[:, None]
+    out[near] = (1 - w[near]) * (tile_b + (tile_a - tile_b) * tiles) * (0.9 + 0.2 * grain)
+    out[far] += w[far] * (lawn_a + (lawn_b - lawn_a) * scene.noise(p[far] + 200.0, 0.35, 3)[:, None])
+    return out
 
 
 def box_albedo(scene: Scene, box: Box, p: np.ndarray) -> np.ndarray:
@@ -337,36 +384,38 @@ def sky_color(scene: Scene, p: np.ndarray) -> np.ndarray:
     elev = np.clip(p[:, 2] / DOME_RADIUS, 0.0, 1.0)[:, None]
     horizon, zenith = np.array([0.78, 0.84, 0.90]), np.array([0.32, 0.52, 0.82])
     sky = horizon + (zenith - horizon) * np.sqrt(elev)
-    clouds = smoothstep(0.5, 0.75, scene.noise(p + 500.0, 0.12, 3))[:, None]
+    cloud_plane = p[:, :2] * (6.0 / (np.maximum(p[:, 2:], 0.0) + 6.0))  # flattened towards the horizon
+    clouds = smoothstep(0.5, 0.75, scene.noise(cloud_plane + 500.0, 0.12, 3))[:, None]
     sky = sky + (np.array([0.95, 0.95, 0.96]) - sky) * 0.85 * clouds
     az = np.arctan2(p[:, 1], p[:, 0])
     f, amp, phase = scene.hill_harmonics.T
     height = 2.2 + np.sin(az[:, None] * f + phase) @ amp
-    hill = (np.array([0.36, 0.46, 0.42]) * (0.85 + 0.3 * scene.noise(p + 600.0, 0.3, 2)[:, None]))
+    hill_plane = p[:, :2] + p[:, 2:] * np.array([0.6, -0.4])  # a 2D slice through 3D space
+    hill = np.array([0.36, 0.46, 0.42]) * (0.85 + 0.3 * scene.noise(hill_plane + 600.0, 0.3, 2)[:, None])
     hill = hill + (horizon - hill) * 0.25 * smoothstep(0.0, 4.0, p[:, 2])[:, None]  # aerial perspective
     w = smoothstep(-0.25, 0.25, p[:, 2] - height)[:, None]
     return hill * (1 - w) + sky * w
 
 
 def shade(scene: Scene, hit: Hit) -> np.ndarray:
-    """Hits -> linear-ish display colours [R, 3] in [0, 1]: albedo x (ambient + sun x (n . sun) x lit)."""
-    albedo = np.zeros((len(hit.t), 3))
-    m = hit.material
-    sel = m == GROUND
-    albedo[sel] = ground_albedo(scene, hit.point[sel])
+    """Hits -> display colours [R, 3] in [0, 1]: albedo x (ambient + sun x (n . sun) x lit); the sky emits."""
+    rgb = np.empty((len(hit.t), 3))
+    sky = np.flatnonzero(hit.material == SKY)
+    rgb[sky] = sky_color(scene, hit.point[sky])
+    solid = np.flatnonzero(hit.material != SKY)
+    p, n, m = hit.point[solid], hit.normal[solid], hit.material[solid]
+    albedo = np.empty((len(solid), 3))
+    sel = np.flatnonzero(m == GROUND)
+    albedo[sel] = ground_albedo(scene, p[sel])
     for k, box in enumerate(scene.boxes):
-        sel = m == 2 + k
-        albedo[sel] = box_albedo(scene, box, hit.point[sel])
+        sel = np.flatnonzero(m == 2 + k)
+        albedo[sel] = box_albedo(scene, box, p[sel])
     for k, sph in enumerate(scene.spheres):
-        sel = m == 2 + len(scene.boxes) + k
-        albedo[sel] = sphere_albedo(sph, hit.point[sel])
-    solid = m != SKY
-    cos = np.clip(hit.normal[solid] @ SUN_DIR, 0.0, 1.0)
-    lit = ~in_shadow(scene, hit.point[solid], hit.normal[solid])
-    light = AMBIENT + (1.0 - AMBIENT) * 1.1 * cos * lit
-    rgb = np.zeros_like(albedo)
-    rgb[solid] = albedo[solid] * light[:, None]
-    rgb[~solid] = sky_color(scene, hit.point[~solid])
+        sel = np.flatnonzero(m == 2 + len(scene.boxes) + k)
+        albedo[sel] = sphere_albedo(sph, p[sel])
+    cos = np.clip(n @ SUN_DIR, 0.0, 1.0)
+    light = AMBIENT + (1.0 - AMBIENT) * 1.1 * cos * ~in_shadow(scene, p, n)
+    rgb[solid] = albedo * light[:, None]
     return np.clip(rgb, 0.0, 1.0)
 
 
@@ -398,8 +447,8 @@ def orbit_poses(n: int, rng: np.random.Generator) -> np.ndarray:
 
 
 def pixel_rays(c2w: np.ndarray, fx: float, cx: float, cy: float, width: int, height: int,
-               offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rays through pixel (column, row) + offset for each offset [S, 2] -> origins, directions [H, W, S, 3].
+               offsets: np.ndarray) -> np.ndarray:
+    """Directions [H, W, S, 3] of the rays through pixel (column, row) + offset for each offset [S, 2].
 
     Directions have unit z in camera axes, so the hit parameter t is the z-depth (square pixels, fy = fx).
     """
@@ -407,8 +456,7 @@ def pixel_rays(c2w: np.ndarray, fx: float, cx: float, cy: float, width: int, hei
     v = np.arange(height)[:, None, None] + offsets[None, None, :, 1]
     u, v = np.broadcast_arrays(u, v)
     d_cam = np.stack([(u - cx) / fx, (v - cy) / fx, np.ones_like(u)], axis=-1)
-    d = d_cam @ c2w[:3, :3].T
-    return np.broadcast_to(c2w[:3, 3], d.shape), d
+    return d_cam @ c2w[:3, :3].T
 
 
 # ------------------------------------------------------------------------------------------- render
@@ -418,11 +466,12 @@ def render_view(scene: Scene, c2w: np.ndarray, fx: float, cx: float, cy: float, 
     """One view -> image [H, W, 3] (supersampled), z-depth [H, W] and the centre-ray directions [H, W, 3]."""
     g = (np.arange(SUPERSAMPLE) + 0.5) / SUPERSAMPLE
     offsets = np.stack(np.meshgrid(g, g, indexing="ij"), axis=-1).reshape(-1, 2)
-    o, d = pixel_rays(c2w, fx, cx, cy, width, height, offsets)
-    rgb = shade(scene, trace(scene, o.reshape(-1, 3), d.reshape(-1, 3)))
+    eye = c2w[:3, 3]
+    d = pixel_rays(c2w, fx, cx, cy, width, height, offsets)
+    rgb = shade(scene, trace(scene, eye, d.reshape(-1, 3)))
     image = rgb.reshape(height, width, len(offsets), 3).mean(axis=2)
-    o, d = pixel_rays(c2w, fx, cx, cy, width, height, np.array([[0.5, 0.5]]))
-    depth = trace(scene, o.reshape(-1, 3), d.reshape(-1, 3)).t.reshape(height, width)
+    d = pixel_rays(c2w, fx, cx, cy, width, height, np.array([[0.5, 0.5]]))
+    depth = trace(scene, eye, d.reshape(-1, 3)).t.reshape(height, width)
     return image.astype(np.float32), depth.astype(np.float32), d[:, :, 0]
 
 
