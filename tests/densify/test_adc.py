@@ -60,7 +60,7 @@ def test_clone_small_split_large_keep_quiet():
     adc = AdaptiveDensityControl(ADCConfig(), max_steps=3000, extent=1.0)
     # NDC gradient = pixel gradient * (W/2, H/2): 1e-5 * 50 = 5e-4 > 2e-4.
     adc.update_stats(model, fake_render(model, [[1e-5, 0]] * 3 + [[1e-7, 0]]))
-    parent = float(torch.exp(model.params["scales"][2, 0]))
+    parent = float(torch.exp(model.params["scales"][2, 0].detach()))
     report = adc.refine(model, opts, step=100)
     assert report == {"clone": 2, "split": 1, "prune": 1}
     assert len(model) == 4 + 2 + 2 - 1
