@@ -119,6 +119,15 @@ class Cameras:
         pick = lambda t: None if t is None else t[idx]  # noqa: E731
         return Cameras(*(pick(getattr(self, f)) for f in self.__dataclass_fields__))
 
+    @staticmethod
+    def cat(parts: list[Cameras]) -> Cameras:
+        """Concatenate cameras along the view dimension (optional fields kept only if every part has them)."""
+        fields = {}
+        for name in Cameras.__dataclass_fields__:
+            values = [getattr(c, name) for c in parts]
+            fields[name] = None if any(v is None for v in values) else torch.cat(values)
+        return Cameras(**fields)
+
     def to(self, device: torch.device | str) -> Cameras:
         move = lambda t: None if t is None else t.to(device)  # noqa: E731
         return Cameras(*(move(getattr(self, f)) for f in self.__dataclass_fields__))

@@ -24,15 +24,6 @@ def auto_downscale(cameras: Cameras, max_side: int) -> int:
     return d
 
 
-def cat_cameras(parts: list[Cameras]) -> Cameras:
-    """Concatenate cameras along the view dimension (optional fields kept only if every part has them)."""
-    fields = {}
-    for name in Cameras.__dataclass_fields__:
-        values = [getattr(c, name) for c in parts]
-        fields[name] = None if any(v is None for v in values) else torch.cat(values)
-    return Cameras(**fields)
-
-
 class Dataset:
     """All views of a scene in memory, resized by ``downscale``, as tensors on ``device``.
 
@@ -62,7 +53,7 @@ class Dataset:
             for w, h in zip(cams.width.tolist(), cams.height.tolist(), strict=True)
         ]
         """(width, height) per view after downscaling."""
-        self.cameras = cat_cameras([cams[i].resized(w, h) for i, (w, h) in enumerate(self.sizes)]).to(self.device)
+        self.cameras = Cameras.cat([cams[i].resized(w, h) for i, (w, h) in enumerate(self.sizes)]).to(self.device)
         self.images = self._load_rgb(scene.images, scene.image_paths, "images")
         self.clean_images = self._load_rgb(scene.clean_images, scene.clean_image_paths, "clean images", optional=True)
         self.depths = None if scene.depths is None else [self._depth(i, d) for i, d in enumerate(scene.depths)]

@@ -21,8 +21,6 @@ class Projected:
     """[N] camera-space z of the means."""
     radii: torch.Tensor
     """[N] int32 screen radius in pixels (3 sigma); 0 for culled Gaussians."""
-    cov2d: torch.Tensor
-    """[N, 3] 2D covariance (xx, xy, yy) including the eps2d dilation."""
     extents: torch.Tensor
     """[N, 2] half-width and half-height (px) of the box where alpha can reach 1/255 (used for tile binning)."""
 
@@ -120,7 +118,6 @@ def project_gaussians(
         conics=torch.where(keep[:, None], conics, torch.zeros_like(conics)),
         depths=torch.where(keep, tz_safe, one),
         radii=radii,
-        cov2d=torch.stack([a, b, c], dim=-1),
         extents=torch.where(
             keep[:, None] & (extents.amin(dim=1, keepdim=True) > 0), extents, torch.zeros_like(extents)
         ),

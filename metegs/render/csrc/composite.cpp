@@ -286,9 +286,9 @@ void backward_kernel(const scalar_t* __restrict__ means2d, const scalar_t* __res
   });
 }
 
-void check_inputs(const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opac,
-                  const at::Tensor& colors, const at::Tensor& depths, const at::Tensor& ids,
-                  const at::Tensor& offsets, int64_t tiles_x, int64_t tiles_y) {
+// Checks the inputs shared by forward and backward and makes them contiguous in place.
+void prepare_inputs(at::Tensor& means2d, at::Tensor& conics, at::Tensor& opac, at::Tensor& colors,
+                    at::Tensor& depths, at::Tensor& ids, at::Tensor& offsets, int64_t tiles_x, int64_t tiles_y) {
   const auto N = means2d.size(0);
   TORCH_CHECK(means2d.device().is_cpu(), "metegs cpu composite: tensors must be on the CPU");
   TORCH_CHECK(means2d.dim() == 2 && means2d.size(1) == 2, "means2d must be [N, 2]");
@@ -304,21 +304,15 @@ void check_inputs(const at::Tensor& means2d, const at::Tensor& conics, const at:
               "gaussian_ids and offsets must be int64");
   TORCH_CHECK(offsets.dim() == 1 && offsets.size(0) == tiles_x * tiles_y + 1, "offsets must be [tiles + 1]");
   TORCH_CHECK(ids.numel() < (int64_t(1) << 31), "too many intersections for int32 list positions");
+  for (at::Tensor* t : {&means2d, &conics, &opac, &colors, &depths, &ids, &offsets}) *t = t->contiguous();
 }
 
 std::vector<at::Tensor> composite_forward(at::Tensor means2d, at::Tensor conics, at::Tensor opac,
                                           at::Tensor colors, at::Tensor depths, at::Tensor ids,
                                           at::Tensor offsets, int64_t tiles_x, int64_t tiles_y, int64_t width,
                                           int64_t height) {
-  check_inputs(means2d, conics, opac, colors, depths, ids, offsets, tiles_x, tiles_y);
+  prepare_inputs(means2d, conics, opac, colors, depths, ids, offsets, tiles_x, tiles_y);
   TORCH_CHECK(width <= tiles_x * TS && height <= tiles_y * TS, "image larger than the tile grid");
-  means2d = means2d.contiguous();
-  conics = conics.contiguous();
-  opac = opac.contiguous();
-  colors = colors.contiguous();
-  depths = depths.contiguous();
-  ids = ids.contiguous();
-  offsets = offsets.contiguous();
   const int64_t D = colors.size(1);
   const auto opts = means2d.options();
   auto color = at::zeros({height, width, D}, opts);
@@ -342,7 +336,7 @@ at::Tensor composite_backward(at::Tensor means2d, at::Tensor conics, at::Tensor 
                               at::Tensor depths, at::Tensor ids, at::Tensor offsets, at::Tensor saved_T,
                               at::Tensor saved_last, at::Tensor g_color, at::Tensor g_alpha, at::Tensor g_depth,
                               int64_t tiles_x, int64_t tiles_y, int64_t width, int64_t height) {
-  check_inputs(means2d, conics, opac, colors, depths, ids, offsets, tiles_x, tiles_y);
+  prepare_inputs(means2d, conics, opac, colors, depths, ids, offsets, tiles_x, tiles_y);
   const int64_t D = colors.size(1);
   const auto dt = means2d.scalar_type();
   TORCH_CHECK(g_color.sizes() == at::IntArrayRef({height, width, D}) && g_color.scalar_type() == dt,
@@ -353,13 +347,6 @@ at::Tensor composite_backward(at::Tensor means2d, at::Tensor conics, at::Tensor 
               "grad depth must be [H, W]");
   TORCH_CHECK(saved_T.numel() == tiles_x * tiles_y * TP && saved_last.scalar_type() == at::kInt,
               "bad saved forward state");
-  means2d = means2d.contiguous();
-  conics = conics.contiguous();
-  opac = opac.contiguous();
-  colors = colors.contiguous();
-  depths = depths.contiguous();
-  ids = ids.contiguous();
-  offsets = offsets.contiguous();
   saved_T = saved_T.contiguous();
   saved_last = saved_last.contiguous();
   g_color = g_color.contiguous();
