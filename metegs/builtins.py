@@ -12,6 +12,7 @@ _parsers.register("synthetic", "metegs.data.parsers.synthetic:SyntheticParser", 
 _raster = registry("rasterizer")
 _raster.register("torch", "metegs.render.torch_backend:TorchRasterizer", description="vectorised PyTorch reference (any device)")
 _raster.register("cpu", "metegs.render.cpu_backend:CpuRasterizer", description="compiled C++ tile compositing (CPU only; built on first use)")
+_raster.register("gsplat", "metegs.render.gsplat_backend:GsplatRasterizer", description="gsplat CUDA kernels (CUDA devices only; pip install 'metegs[cuda]')")
 
 _densify = registry("densifier")
 _densify.register("adc", "metegs.densify.adc:AdaptiveDensityControl", description="3DGS adaptive density control (clone/split/prune/reset)")
