@@ -1,8 +1,10 @@
-"""The `cpu` rasteriser: tile compositing (forward and backward) as a compiled C++ kernel.
+"""The `cpu` rasteriser: every stage of a render as compiled C++ with hand-written backward passes.
 
-Projection, SH and tile binning are the torch reference code (autograd); only the compositing runs
-in ``csrc/composite.cpp`` through `CompositeTiles`, a `torch.autograd.Function` with a hand-written
-backward. The extension is compiled with `torch.utils.cpp_extension` on first use (about a minute)
+Three ops, each the equivalent of a torch reference stage (and tested against it):
+``csrc/project.cpp`` (EWA projection + SH colours, `ProjectShade`; reference: `project_gaussians` and
+`gaussian_colors`), ``csrc/binning.cpp`` (depth-sorted tile lists with an exact ellipse-tile test;
+reference: `bin_gaussians`) and ``csrc/composite.cpp`` (tile compositing, `CompositeTiles`; reference:
+`torch_backend.composite_tiles`). The extension is compiled with `torch.utils.cpp_extension` on first use (about a minute)
 and cached in ``~/.cache/metegs/torch_extensions/<torch version>/<cpu tag>/`` (``$XDG_CACHE_HOME``
 is honoured, ``METEGS_EXTENSIONS_DIR`` overrides the whole path); later processes only load it.
 When it cannot be built, `CpuRasterizer.available` is False (with one warning saying why), so
@@ -27,10 +29,12 @@ from metegs.cameras import Cameras
 from metegs.errors import MetegsError
 from metegs.gaussians.model import GaussianSet
 from metegs.render.base import RenderOutput, RenderSettings
-from metegs.render.pipeline import rasterize
-from metegs.render.tiles import TileBins
+from metegs.render.pipeline import finish_render, resolve_sh_degree
+from metegs.render.tiles import TILE_SIZE, TileBins
 
-SOURCE = Path(__file__).parent / "csrc" / "composite.cpp"
+CSRC = Path(__file__).parent / "csrc"
+SOURCES = [CSRC / name for name in ("bindings.cpp", "project.cpp", "binning.cpp", "composite.cpp")]
+HEADERS = [CSRC / "metegs_cpu.h"]
 _TORCH_TAG = "".join(ch if ch.isalnum() else "_" for ch in torch.__version__)
 EXTENSION_NAME = f"metegs_cpu_composite_{_TORCH_TAG}"
 
@@ -40,10 +44,12 @@ EXTENSION_NAME = f"metegs_cpu_composite_{_TORCH_TAG}"
 # binary built for another CPU. -mprefer-vector-width=512 lets GCC use zmm registers where the CPU
 # has AVX-512 (about 1.4x on the Zen 5 CI machine; ignored elsewhere). -ffp-contract=off keeps
 # forward and backward alphas bit-identical (see the .cpp); -fno-trapping-math lets GCC if-convert
-# (vectorise) the pixel loops (no FP exceptions are used). -fopenmp-simd enables `#pragma omp simd`
-# only: threads come from torch's own pool (at::parallel_for), so no second OpenMP runtime is linked.
+# (vectorise) the pixel loops (no FP exceptions are used). -fopenmp: at::parallel_for is inlined from
+# ATen's headers as `#pragma omp parallel`, so without it every kernel would run on one thread. The
+# extension links libgomp.so.1 by soname, which resolves to the runtime torch has already loaded
+# (torch/lib/libgomp.so.1): one thread pool, shared with torch's own ops.
 CFLAGS = [
-    "-O3", "-march=native", "-mprefer-vector-width=512", "-ffp-contract=off", "-fno-trapping-math", "-fopenmp-simd",
+    "-O3", "-march=native", "-mprefer-vector-width=512", "-ffp-contract=off", "-fno-trapping-math", "-fopenmp",
 ]
 
 
@@ -97,7 +103,7 @@ def load_extension():
             _state["ext"] = _build()
         except Exception as exc:  # noqa: BLE001 - any failure means "not available", with the reason kept
             reason = exc.args[0] if isinstance(exc, CpuExtensionError) else f"{type(exc).__name__}: {_tail(str(exc))}"
-            _state["error"] = f"cannot build the metegs CPU rasteriser extension ({SOURCE.name}): {reason}"
+            _state["error"] = f"cannot build the metegs CPU rasteriser extension (in {CSRC}): {reason}"
             raise CpuExtensionError(_state["error"]) from exc
     return _state["ext"]
 
@@ -105,8 +111,9 @@ def load_extension():
 def _build():
     from torch.utils import cpp_extension
 
-    if not SOURCE.is_file():
-        raise CpuExtensionError(f"source file {SOURCE} is missing from the installation")
+    missing = [str(f) for f in SOURCES + HEADERS if not f.is_file()]
+    if missing:
+        raise CpuExtensionError(f"source files missing from the installation: {', '.join(missing)}")
     try:
         cpp_extension.verify_ninja_availability()
     except RuntimeError as exc:
@@ -116,7 +123,7 @@ def _build():
     built, ninja_file = build_dir / f"{EXTENSION_NAME}.so", build_dir / "build.ninja"
     stale = (
         not built.exists()
-        or built.stat().st_mtime < SOURCE.stat().st_mtime
+        or built.stat().st_mtime < max(f.stat().st_mtime for f in SOURCES + HEADERS)
         or not ninja_file.exists()
         or " ".join(CFLAGS) not in ninja_file.read_text(errors="replace")
     )
@@ -126,11 +133,40 @@ def _build():
               file=sys.stderr, flush=True)
     return cpp_extension.load(
         name=EXTENSION_NAME,
-        sources=[str(SOURCE)],
+        sources=[str(f) for f in SOURCES],
+        extra_include_paths=[str(CSRC)],
+        extra_ldflags=["-fopenmp"],
         extra_cflags=CFLAGS,
         build_directory=str(build_dir),
         verbose=False,
     )
+
+
+class ProjectShade(torch.autograd.Function):
+    """Fused projection + SH colours; same outputs as `project_gaussians` + `gaussian_colors`."""
+
+    @staticmethod
+    def forward(ctx, means, quats, scales, opacities, sh, viewmat, K, campos, width, height, near, far, eps2d,
+                sh_degree):
+        ext = load_extension()
+        args = (viewmat, K, campos, int(width), int(height), float(near), float(far), float(eps2d), int(sh_degree))
+        means2d, conics, depths, colors, radii, extents = ext.project_forward(means, quats, scales, opacities, sh, *args)
+        ctx.save_for_backward(means, quats, scales, opacities, sh)
+        ctx.args = args
+        ctx.mark_non_differentiable(radii, extents)
+        return means2d, conics, depths, colors, radii, extents
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, g_means2d, g_conics, g_depths, g_colors, _g_radii, _g_extents):
+        means, quats, scales, opacities, sh = ctx.saved_tensors
+        n = means.shape[0]
+        grads = [g if g is not None else means.new_zeros(shape)
+                 for g, shape in ((g_means2d, (n, 2)), (g_conics, (n, 3)), (g_depths, (n,)), (g_colors, (n, 3)))]
+        g_means, g_quats, g_scales, g_sh = load_extension().project_backward(
+            means, quats, scales, opacities, sh, *ctx.args, *grads
+        )
+        return (g_means, g_quats, g_scales, None, g_sh) + (None,) * 9
 
 
 class CompositeTiles(torch.autograd.Function):
@@ -197,8 +233,30 @@ class CpuRasterizer:
             return False
         return True
 
+    def __init__(self, cull_tiles: bool = True):
+        self.cull_tiles = cull_tiles
+        """Bin a Gaussian only into tiles its ellipse reaches (exact; fewer pairs for elongated Gaussians)."""
+
     def render(self, gaussians: GaussianSet, camera: Cameras, settings: RenderSettings | None = None) -> RenderOutput:
         """Render one view. camera: a single view (len 1)."""
-        if gaussians.means.device.type != "cpu":
-            raise CpuExtensionError(f"the `cpu` rasteriser needs CPU tensors, got {gaussians.means.device}")
-        return rasterize(gaussians, camera, settings, composite_tiles_cpu)
+        g = gaussians
+        if g.means.device.type != "cpu":
+            raise CpuExtensionError(f"the `cpu` rasteriser needs CPU tensors, got {g.means.device}")
+        s = settings or RenderSettings()
+        width, height = int(camera.width[0]), int(camera.height[0])
+        viewmat = camera.world_to_cameras()[0].to(g.means)
+        K = camera.intrinsics()[0].to(g.means)
+        campos = camera.centers[0].to(g.means)
+        means2d, conics, depths, colors, radii, extents = ProjectShade.apply(
+            g.means, g.quats, g.scales, g.opacities, g.sh, viewmat, K, campos, width, height,
+            s.near, s.far, s.eps2d, resolve_sh_degree(g, s),
+        )
+        if means2d.requires_grad:
+            means2d.retain_grad()
+        ids, offsets = load_extension().bin_tiles(
+            means2d.detach(), conics.detach(), g.opacities.detach(), extents, depths.detach(), width, height,
+            self.cull_tiles,
+        )
+        bins = TileBins((width + TILE_SIZE - 1) // TILE_SIZE, (height + TILE_SIZE - 1) // TILE_SIZE, ids, offsets)
+        color, alpha, depth_sum = composite_tiles_cpu(means2d, conics, g.opacities, colors, depths, bins, width, height)
+        return finish_render(color, alpha, depth_sum, s, radii, means2d, bins.num_intersections)

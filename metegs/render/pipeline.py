@@ -31,10 +31,28 @@ def gaussian_colors(g: GaussianSet, campos: torch.Tensor, sh_degree: int) -> tor
     return eval_sh(sh_degree, g.sh, d).clamp_min(0.0)
 
 
+def resolve_sh_degree(g: GaussianSet, settings: RenderSettings) -> int:
+    """The SH degree to evaluate: the settings' (at most what the coefficients hold), else all of them."""
+    available = int(round(g.sh.shape[1] ** 0.5)) - 1
+    return available if settings.sh_degree is None else min(settings.sh_degree, available)
+
+
+def finish_render(
+    color: torch.Tensor, alpha: torch.Tensor, depth_sum: torch.Tensor, settings: RenderSettings,
+    radii: torch.Tensor, means2d: torch.Tensor, num_intersections: int,
+) -> RenderOutput:
+    """Background and expected depth. color [H, W, 3], alpha [H, W], depth_sum [H, W] -> RenderOutput."""
+    rgb = color + (1.0 - alpha)[..., None] * settings.background_tensor(color)
+    depth = depth_sum / alpha.clamp_min(1e-10)
+    height, width = alpha.shape
+    return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, radii=radii, means2d=means2d,
+                        num_intersections=num_intersections, width=width, height=height)
+
+
 def rasterize(
     gaussians: GaussianSet, camera: Cameras, settings: RenderSettings | None, composite: CompositeFn
 ) -> RenderOutput:
-    """Render one view (camera of len 1) with the given compositing function."""
+    """Render one view (camera of len 1) with the torch projection and the given compositing function."""
     s = settings or RenderSettings()
     width, height = int(camera.width[0]), int(camera.height[0])
     viewmat = camera.world_to_cameras()[0].to(gaussians.means)
@@ -47,10 +65,6 @@ def rasterize(
     if means2d.requires_grad:
         means2d.retain_grad()
     bins: TileBins = bin_gaussians(means2d.detach(), proj.extents, proj.depths.detach(), width, height)
-    sh_degree = s.sh_degree if s.sh_degree is not None else int(round(gaussians.sh.shape[1] ** 0.5)) - 1
-    colors = gaussian_colors(gaussians, camera.centers[0].to(gaussians.means), sh_degree)
+    colors = gaussian_colors(gaussians, camera.centers[0].to(gaussians.means), resolve_sh_degree(gaussians, s))
     color, alpha, depth_sum = composite(means2d, proj.conics, gaussians.opacities, colors, proj.depths, bins, width, height)
-    rgb = color + (1.0 - alpha)[..., None] * s.background_tensor(color)
-    depth = depth_sum / alpha.clamp_min(1e-10)
-    return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, radii=proj.radii, means2d=means2d,
-                        num_intersections=bins.num_intersections, width=width, height=height)
+    return finish_render(color, alpha, depth_sum, s, proj.radii, means2d, bins.num_intersections)

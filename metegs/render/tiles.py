@@ -66,7 +66,7 @@ def bin_gaussians(
         ty = y0[gid] + local // w[gid]
         tile_id = ty * tiles_x + tx
         depth_rank = torch.empty(n, dtype=torch.long, device=device)
-        depth_rank[torch.argsort(depths)] = torch.arange(n, device=device)
+        depth_rank[torch.argsort(depths, stable=True)] = torch.arange(n, device=device)
         key = tile_id * n + depth_rank[gid]
         order = torch.argsort(key)
         per_tile = torch.bincount(tile_id, minlength=tiles_x * tiles_y)

@@ -17,7 +17,7 @@
 // Built with -ffp-contract=off so that the forward and the backward recompute bit-identical alphas
 // (the skip decision alpha >= 1/255 must agree) and the operation order matches the torch code.
 
-#include <torch/extension.h>
+#include "metegs_cpu.h"
 
 #include <ATen/Parallel.h>
 
@@ -28,9 +28,10 @@
 #include <cstring>
 #include <vector>
 
+namespace metegs_cpu {
 namespace {
 
-constexpr int TS = 16;        // tile side (metegs.render.tiles.TILE_SIZE)
+constexpr int TS = TILE;
 constexpr int TP = TS * TS;   // pixels per tile
 constexpr int NGRAD = 7;      // per-intersection geometry gradients: mx, my, a, b, c, opacity, depth
 
@@ -70,6 +71,28 @@ inline __attribute__((always_inline)) float neg_exp<float>(float x) {
 template <>
 inline __attribute__((always_inline)) double neg_exp<double>(double x) {
   return std::exp(x);
+}
+
+// Pixel range [pbeg, pend) of a tile (whole rows, row-major) outside which a Gaussian's alpha stays
+// below 1/255: at row offset dy the quadratic form is at least dy^2 (ac - b^2) / a, so only rows with
+// |dy| <= sqrt(2 ln(255 o) a / (ac - b^2)) can contribute (with a small safety margin). Skipping the
+// other rows changes nothing (their alpha would be skipped) and saves most of the work of Gaussians
+// smaller than a tile.
+template <typename scalar_t>
+inline void row_range(scalar_t my, scalar_t a, scalar_t b, scalar_t c, scalar_t o, int64_t y0, int& pbeg,
+                      int& pend) {
+  const double A = a, B = b, Cc = c, det = A * Cc - B * B;
+  pbeg = 0;
+  pend = TP;
+  if (!(A > 0 && det > 0)) return;
+  const double thresh = 2.0 * std::log(std::max(255.0 * double(o), 1.0));
+  const double h = std::sqrt(thresh * A / det) * (1.0 + 1e-4) + 1e-3;
+  const double lo = std::ceil(double(my) - h - 0.5) - double(y0);
+  const double hi = std::floor(double(my) + h - 0.5) - double(y0) + 1.0;
+  const int r0 = static_cast<int>(std::min(std::max(lo, 0.0), double(TS)));
+  const int r1 = static_cast<int>(std::min(std::max(hi, 0.0), double(TS)));
+  pbeg = r0 * TS;
+  pend = std::max(r1, r0) * TS;
 }
 
 // Runs `worker` once on each of torch's intra-op threads; workers pull tiles from a shared counter.
@@ -121,8 +144,10 @@ void forward_kernel(const scalar_t* __restrict__ means2d, const scalar_t* __rest
         const scalar_t a = conics[3 * g], b = conics[3 * g + 1], c = conics[3 * g + 2];
         const scalar_t o = opac[g], z = depths[g];
         const int32_t jp1 = static_cast<int32_t>(j + 1);
-#pragma omp simd aligned(px, py, T, dep, w, last, done : 64)
-        for (int p = 0; p < TP; ++p) {
+        int pbeg, pend;
+        row_range(my, a, b, c, o, y0, pbeg, pend);
+#pragma omp simd
+        for (int p = pbeg; p < pend; ++p) {
           const scalar_t dx = px[p] - mx, dy = py[p] - my;
           const scalar_t power = scalar_t(-0.5) * ((a * dx * dx) + (c * dy * dy)) - (b * dx) * dy;
           const scalar_t e = neg_exp<scalar_t>(power < scalar_t(0) ? power : scalar_t(0));
@@ -142,8 +167,8 @@ void forward_kernel(const scalar_t* __restrict__ means2d, const scalar_t* __rest
         for (int64_t d = 0; d < D; ++d) {
           const scalar_t cd = colors[g * D + d];
           scalar_t* __restrict__ cr = col + d * TP;
-#pragma omp simd aligned(w : 64)
-          for (int p = 0; p < TP; ++p) cr[p] += w[p] * cd;
+#pragma omp simd
+          for (int p = pbeg; p < pend; ++p) cr[p] += w[p] * cd;
         }
         if ((j & 7) == 7) {  // whole-tile early exit
           scalar_t nd = 0;
@@ -218,20 +243,21 @@ void backward_kernel(const scalar_t* __restrict__ means2d, const scalar_t* __res
         const scalar_t o = opac[g], z = depths[g];
         const scalar_t* __restrict__ cg = colors + g * D;
         const int32_t jj = static_cast<int32_t>(j);
+        int pbeg, pend;
+        row_range(my, a, b, c, o, y0, pbeg, pend);
         // s = sum_d (c_d - colour composited behind) * dL/dC_d: needs no alpha of this Gaussian.
-#pragma omp simd aligned(s : 64)
-        for (int p = 0; p < TP; ++p) s[p] = scalar_t(0);
+#pragma omp simd
+        for (int p = pbeg; p < pend; ++p) s[p] = scalar_t(0);
         for (int64_t d = 0; d < D; ++d) {
           const scalar_t cd = cg[d];
           const scalar_t* __restrict__ gc = gC + d * TP;
           const scalar_t* __restrict__ rc = restC + d * TP;
-#pragma omp simd aligned(s : 64)
-          for (int p = 0; p < TP; ++p) s[p] += (cd - rc[p]) * gc[p];
+#pragma omp simd
+          for (int p = pbeg; p < pend; ++p) s[p] += (cd - rc[p]) * gc[p];
         }
         scalar_t gmx = 0, gmy = 0, ga = 0, gb = 0, gc_ = 0, go = 0, gz = 0;
-#pragma omp simd aligned(px, py, T, Tf, gA, gD, restZ, s, av, w, last : 64) \
-    reduction(+ : gmx, gmy, ga, gb, gc_, go, gz)
-        for (int p = 0; p < TP; ++p) {
+#pragma omp simd reduction(+ : gmx, gmy, ga, gb, gc_, go, gz)
+        for (int p = pbeg; p < pend; ++p) {
           const scalar_t dx = px[p] - mx, dy = py[p] - my;
           const scalar_t power = scalar_t(-0.5) * ((a * dx * dx) + (c * dy * dy)) - (b * dx) * dy;
           const scalar_t e = neg_exp<scalar_t>(power < scalar_t(0) ? power : scalar_t(0));
@@ -274,8 +300,8 @@ void backward_kernel(const scalar_t* __restrict__ means2d, const scalar_t* __res
           const scalar_t* __restrict__ gc = gC + d * TP;
           scalar_t* __restrict__ rc = restC + d * TP;
           scalar_t gcol = 0;
-#pragma omp simd aligned(av, w : 64) reduction(+ : gcol)
-          for (int p = 0; p < TP; ++p) {
+#pragma omp simd reduction(+ : gcol)
+          for (int p = pbeg; p < pend; ++p) {
             gcol += w[p] * gc[p];
             rc[p] = rc[p] * (scalar_t(1) - av[p]) + av[p] * cd;
           }
@@ -306,6 +332,8 @@ void prepare_inputs(at::Tensor& means2d, at::Tensor& conics, at::Tensor& opac, a
   TORCH_CHECK(ids.numel() < (int64_t(1) << 31), "too many intersections for int32 list positions");
   for (at::Tensor* t : {&means2d, &conics, &opac, &colors, &depths, &ids, &offsets}) *t = t->contiguous();
 }
+
+}  // namespace
 
 std::vector<at::Tensor> composite_forward(at::Tensor means2d, at::Tensor conics, at::Tensor opac,
                                           at::Tensor colors, at::Tensor depths, at::Tensor ids,
@@ -375,9 +403,4 @@ at::Tensor composite_backward(at::Tensor means2d, at::Tensor conics, at::Tensor 
   return out;
 }
 
-}  // namespace
-
-PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
-  m.def("forward", &composite_forward, "metegs tile compositing forward (CPU)");
-  m.def("backward", &composite_backward, "metegs tile compositing backward (CPU), per-Gaussian gradients");
-}
+}  // namespace metegs_cpu

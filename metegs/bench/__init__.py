@@ -1,0 +1,1 @@
+"""Benchmarks: rasteriser speed (`raster`) and, later, method suites."""

@@ -1,0 +1,139 @@
+// Tile binning for the metegs `cpu` rasteriser: per 16x16 tile, the ids of the Gaussians that can
+// touch it, front to back, as one flat list with offsets (CSR).
+//
+// Candidate tiles are the same boxes as metegs.render.tiles.bin_gaussians (the opacity-aware
+// extents). With `cull`, a candidate tile is kept only if the Gaussian's alpha can reach 1/255 at
+// one of the tile's pixel centres: the minimum of the conic's quadratic form over the rectangle of
+// pixel centres is compared with 2 ln(255 o), with a small safety margin, so no contribution is
+// lost and the image is unchanged, while the long thin footprints of anisotropic Gaussians stop
+// costing whole rows of tiles. Ordering: a stable depth sort of the Gaussians, then a counting sort
+// by tile (O(N log N + M)), instead of a sort of M 64-bit keys.
+
+#include "metegs_cpu.h"
+
+#include <ATen/Parallel.h>
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+
+namespace metegs_cpu {
+namespace {
+
+struct Rect {
+  int64_t x0, x1, y0, y1;  // tile range [x0, x1) x [y0, y1)
+};
+
+template <typename T>
+inline Rect tile_rect(const T* m, const T* e, int64_t tiles_x, int64_t tiles_y) {
+  // the same arithmetic (in the input dtype) as tiles.bin_gaussians
+  auto clampi = [](T v, int64_t hi) { return std::min<int64_t>(std::max<int64_t>(static_cast<int64_t>(v), 0), hi); };
+  const T ts = T(TILE);
+  Rect r;
+  r.x0 = clampi(std::floor((m[0] - e[0]) / ts), tiles_x);
+  r.x1 = clampi(std::floor((m[0] + e[0]) / ts) + T(1), tiles_x);
+  r.y0 = clampi(std::floor((m[1] - e[1]) / ts), tiles_y);
+  r.y1 = clampi(std::floor((m[1] + e[1]) / ts) + T(1), tiles_y);
+  return r;
+}
+
+// Minimum of q(dx, dy) = a dx^2 + 2 b dx dy + c dy^2 (positive definite) over [X0, X1] x [Y0, Y1],
+// and |a| dx^2 + 2 |b dx dy| + |c| dy^2 at the minimiser (the size of the rounding error there).
+inline void quad_min(double a, double b, double c, double X0, double X1, double Y0, double Y1, double& qmin,
+                     double& qabs) {
+  if (X0 <= 0 && 0 <= X1 && Y0 <= 0 && 0 <= Y1) {
+    qmin = 0;
+    qabs = 0;
+    return;
+  }
+  qmin = std::numeric_limits<double>::infinity();
+  qabs = 0;
+  auto consider = [&](double x, double y) {
+    const double q = a * x * x + 2 * b * x * y + c * y * y;
+    if (q < qmin) {
+      qmin = q;
+      qabs = std::abs(a) * x * x + 2 * std::abs(b * x * y) + std::abs(c) * y * y;
+    }
+  };
+  for (double X : {X0, X1}) consider(X, std::clamp(-b * X / c, Y0, Y1));
+  for (double Y : {Y0, Y1}) consider(std::clamp(-b * Y / a, X0, X1), Y);
+}
+
+template <typename T>
+inline bool tile_reached(const T* m, const T* conic, T opacity, int64_t tx, int64_t ty, int64_t W, int64_t H) {
+  const double a = conic[0], b = conic[1], c = conic[2];
+  if (!(a > 0 && c > 0 && a * c - b * b > 0)) return true;  // not positive definite: keep (no culling)
+  const double thresh = 2.0 * std::log(std::max(255.0 * double(opacity), 1.0));
+  const double mx = m[0], my = m[1];
+  const double X0 = double(tx * TILE) + 0.5 - mx, X1 = double(std::min((tx + 1) * TILE, W) - 1) + 0.5 - mx;
+  const double Y0 = double(ty * TILE) + 0.5 - my, Y1 = double(std::min((ty + 1) * TILE, H) - 1) + 0.5 - my;
+  double qmin, qabs;
+  quad_min(a, b, c, X0, X1, Y0, Y1, qmin, qabs);
+  return qmin <= thresh + 1e-4 * (1.0 + thresh + qabs);
+}
+
+}  // namespace
+
+std::vector<at::Tensor> bin_tiles(at::Tensor means2d, at::Tensor conics, at::Tensor opacities, at::Tensor extents,
+                                  at::Tensor depths, int64_t width, int64_t height, bool cull) {
+  const int64_t N = means2d.size(0);
+  TORCH_CHECK(means2d.dim() == 2 && means2d.size(1) == 2, "means2d must be [N, 2]");
+  TORCH_CHECK(conics.dim() == 2 && conics.size(0) == N && conics.size(1) == 3, "conics must be [N, 3]");
+  TORCH_CHECK(opacities.dim() == 1 && opacities.size(0) == N, "opacities must be [N]");
+  TORCH_CHECK(extents.dim() == 2 && extents.size(0) == N && extents.size(1) == 2, "extents must be [N, 2]");
+  TORCH_CHECK(depths.dim() == 1 && depths.size(0) == N, "depths must be [N]");
+  means2d = means2d.contiguous(), conics = conics.contiguous(), opacities = opacities.contiguous();
+  extents = extents.to(means2d.scalar_type()).contiguous();
+  const int64_t tiles_x = (width + TILE - 1) / TILE, tiles_y = (height + TILE - 1) / TILE;
+  const int64_t ntiles = tiles_x * tiles_y;
+  auto order = std::get<1>(at::sort(depths.contiguous(), /*stable=*/true, /*dim=*/0, /*descending=*/false));
+  order = order.contiguous();
+  const int64_t* ord = order.data_ptr<int64_t>();
+  std::vector<int64_t> count(N, 0);
+  auto offsets = at::zeros({ntiles + 1}, means2d.options().dtype(at::kLong));
+  at::Tensor ids;
+  AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "metegs_bin_tiles", [&] {
+    using T = scalar_t;
+    const T *mp = means2d.data_ptr<T>(), *cp = conics.data_ptr<T>(), *op = opacities.data_ptr<T>();
+    const T* ep = extents.data_ptr<T>();
+    auto for_each_tile = [&](int64_t g, auto&& fn) {
+      const T* e = ep + 2 * g;
+      if (!(e[0] > 0 && e[1] > 0)) return;
+      const Rect r = tile_rect(mp + 2 * g, e, tiles_x, tiles_y);
+      for (int64_t ty = r.y0; ty < r.y1; ++ty)
+        for (int64_t tx = r.x0; tx < r.x1; ++tx)
+          if (!cull || tile_reached(mp + 2 * g, cp + 3 * g, op[g], tx, ty, width, height)) fn(ty * tiles_x + tx);
+    };
+    at::parallel_for(0, N, 256, [&](int64_t begin, int64_t end) {
+      for (int64_t g = begin; g < end; ++g) {
+        int64_t n = 0;
+        for_each_tile(g, [&](int64_t) { ++n; });
+        count[g] = n;
+      }
+    });
+    // Gaussian-major tile lists in depth order, then a stable counting sort by tile.
+    std::vector<int64_t> start(N + 1, 0);
+    for (int64_t i = 0; i < N; ++i) start[i + 1] = start[i] + count[ord[i]];
+    const int64_t M = start[N];
+    std::vector<int32_t> tiles_of(M);
+    at::parallel_for(0, N, 256, [&](int64_t begin, int64_t end) {
+      for (int64_t i = begin; i < end; ++i) {
+        int64_t k = start[i];
+        for_each_tile(ord[i], [&](int64_t t) { tiles_of[k++] = static_cast<int32_t>(t); });
+      }
+    });
+    int64_t* off = offsets.data_ptr<int64_t>();
+    for (int64_t k = 0; k < M; ++k) ++off[tiles_of[k] + 1];
+    for (int64_t t = 0; t < ntiles; ++t) off[t + 1] += off[t];
+    ids = at::empty({M}, offsets.options());
+    int64_t* idp = ids.data_ptr<int64_t>();
+    std::vector<int64_t> cursor(off, off + ntiles);
+    for (int64_t i = 0; i < N; ++i) {
+      const int64_t g = ord[i];
+      for (int64_t k = start[i]; k < start[i + 1]; ++k) idp[cursor[tiles_of[k]]++] = g;
+    }
+  });
+  return {ids, offsets};
+}
+
+}  // namespace metegs_cpu
