@@ -10,14 +10,13 @@ L1 against a fixed random image. Each configuration: one warm-up step, then the 
 from __future__ import annotations
 
 import math
-import os
 import statistics
-import threading
 import time
 from dataclasses import asdict, dataclass
 
 import torch
 
+from metegs.bench.memory import PeakMemory
 from metegs.cameras import Cameras
 from metegs.gaussians.model import GaussianSet
 from metegs.registry import registry
@@ -69,47 +68,6 @@ def benchmark_scene(n: int, seed: int = 0, device: str | torch.device = "cpu") -
 def benchmark_camera(width: int, height: int) -> Cameras:
     """Camera at the origin looking down +z with fx = fy = width, principal point at the centre."""
     return Cameras.create(torch.eye(4)[None], float(width), float(width), width / 2, height / 2, width, height)
-
-
-class _PeakMemory:
-    """Peak memory above the starting level while the block runs (CPU: RSS sampled every 0.5 ms)."""
-
-    def __init__(self, device: torch.device):
-        self.device = device
-        self.peak_mb = 0.0
-
-    @staticmethod
-    def _rss() -> int:
-        with open("/proc/self/statm") as f:
-            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
-
-    def __enter__(self):
-        if self.device.type == "cuda":
-            torch.cuda.synchronize(self.device)
-            torch.cuda.reset_peak_memory_stats(self.device)
-            self._base = torch.cuda.memory_allocated(self.device)
-            return self
-        self._base = self._peak = self._rss()
-        self._stop = threading.Event()
-
-        def sample():
-            while not self._stop.is_set():
-                self._peak = max(self._peak, self._rss())
-                time.sleep(0.0005)
-
-        self._thread = threading.Thread(target=sample, daemon=True)
-        self._thread.start()
-        return self
-
-    def __exit__(self, *exc):
-        if self.device.type == "cuda":
-            torch.cuda.synchronize(self.device)
-            self.peak_mb = (torch.cuda.max_memory_allocated(self.device) - self._base) / 2**20
-        else:
-            self._stop.set()
-            self._thread.join()
-            self._peak = max(self._peak, self._rss())
-            self.peak_mb = (self._peak - self._base) / 2**20
 
 
 def _sync(device: torch.device) -> None:
@@ -175,7 +133,7 @@ def run_raster_benchmark(
                 rasterizer = registry("rasterizer").get(name)()
                 _time_step(rasterizer, scene, cam, target, backward=True)  # warm-up (and extension load)
                 fwd = [_time_step(rasterizer, scene, cam, target, backward=False)[0] for _ in range(repeats)]
-                with _PeakMemory(device) as mem:
+                with PeakMemory(device) as mem:
                     fb = [_time_step(rasterizer, scene, cam, target, backward=True) for _ in range(repeats)]
                 records.append(
                     RasterRecord(

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import torch
@@ -27,6 +27,30 @@ class RasterArgs:
     backends: list[str] | None = None
     """Backends to time (default: every registered backend usable on the device; `torch` first)."""
     repeats: int = 3
+    """Timed steps per configuration (after one warm-up step); the median is reported."""
+    threads: int | None = None
+    """torch intra-op threads (default: torch's)."""
+    device: str = "cpu"
+    """Torch device."""
+    json: bool = False
+    """Print the records as a JSON list instead of a table."""
+    output: Path | None = None
+    """Also write the JSON records to this file."""
+
+
+@dataclass
+class StepArgs:
+    """Full training steps (render, loss, backward, Adam) on the synthetic scene: ms per step, it/s, peak RSS."""
+
+    sizes: list[int] = field(default_factory=lambda: [4000, 20000, 60000])
+    """Numbers of Gaussians (the scene's points resampled)."""
+    width: int | None = None
+    """Image width of the synthetic scene (default: its default, 160)."""
+    height: int | None = None
+    """Image height of the synthetic scene (default: its default, 120)."""
+    backends: list[str] | None = None
+    """Backends to time (default: every registered backend usable on the device)."""
+    repeats: int = 10
     """Timed steps per configuration (after one warm-up step); the median is reported."""
     threads: int | None = None
     """torch intra-op threads (default: torch's)."""
@@ -101,12 +125,58 @@ def raster(args: RasterArgs) -> list[dict]:
     return rows
 
 
+def step(args: StepArgs) -> list[dict]:
+    from metegs.bench.step import run_step_benchmark, step_records_as_dicts
+    from metegs.engine.config import TrainConfig
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    config = TrainConfig(method="3dgs", device=args.device, threads=args.threads or 0)
+    synth = config.dataset.synthetic
+    if args.width or args.height:
+        synth = replace(synth, width=args.width or synth.width, height=args.height or synth.height)
+        config = replace(config, dataset=replace(config.dataset, synthetic=synth, downscale=1))
+    backends = args.backends or [b for b in usable_backends(torch.device(args.device))]
+    console = Console(stderr=True)
+    with console.status("benchmarking training steps ...") as status:
+        records = run_step_benchmark(
+            config,
+            args.sizes,
+            backends,
+            args.repeats,
+            progress=lambda r: status.update(f"done {r.backend} {r.num_gaussians}"),
+        )
+    rows = step_records_as_dicts(records)
+    if args.output:
+        atomic_write_text(args.output, json.dumps(rows, indent=2))
+    if args.json:
+        print(json.dumps(rows, indent=2))
+        return rows
+    table = Table(title="training step (render + loss + backward + Adam), median")
+    for col in ("backend", "N", "image", "ms/step", "it/s", "RSS before MB", "step peak +MB"):
+        table.add_column(col, justify="right")
+    for r in rows:
+        table.add_row(
+            r["backend"],
+            str(r["num_gaussians"]),
+            f"{r['width']}x{r['height']}",
+            f"{r['step_ms']:.1f}",
+            f"{r['iterations_per_s']:.1f}",
+            f"{r['rss_before_mb']:.0f}",
+            f"{r['step_peak_mb']:.0f}",
+        )
+    Console().print(table)
+    return rows
+
+
 def entrypoint() -> None:
     """Console script `metegs-bench`."""
 
     def main() -> None:
-        args = tyro.extras.subcommand_cli_from_dict({"raster": RasterArgs}, prog="metegs-bench")
+        args = tyro.extras.subcommand_cli_from_dict({"raster": RasterArgs, "step": StepArgs}, prog="metegs-bench")
         if isinstance(args, RasterArgs):
             raster(args)
+        else:
+            step(args)
 
     run_cli(main)

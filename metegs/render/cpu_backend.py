@@ -16,6 +16,7 @@ from __future__ import annotations
 import hashlib
 import os
 import platform
+import subprocess
 import sys
 import threading
 import warnings
@@ -102,7 +103,13 @@ def load_extension():
         try:
             _state["ext"] = _build()
         except Exception as exc:  # noqa: BLE001 - any failure means "not available", with the reason kept
-            reason = exc.args[0] if isinstance(exc, CpuExtensionError) else f"{type(exc).__name__}: {_tail(str(exc))}"
+            if isinstance(exc, CpuExtensionError):
+                reason = exc.args[0]
+            elif isinstance(exc, subprocess.CalledProcessError | FileNotFoundError):
+                reason = (f"the C++ compiler ({os.environ.get('CXX', 'c++')}) is missing or does not work "
+                          f"(install g++ or set CXX): {type(exc).__name__}: {_tail(str(exc))}")
+            else:
+                reason = f"{type(exc).__name__}: {_tail(str(exc))}"
             _state["error"] = f"cannot build the metegs CPU rasteriser extension (in {CSRC}): {reason}"
             raise CpuExtensionError(_state["error"]) from exc
     return _state["ext"]

@@ -1,0 +1,37 @@
+"""`metegs-bench raster` and `metegs-bench step` produce complete records (functional checks, not timings)."""
+
+import json
+
+from metegs.bench.raster import benchmark_camera, benchmark_scene, plain_pairs
+from metegs.cli.bench import RasterArgs, StepArgs, raster, step
+
+RASTER_KEYS = {"backend", "num_gaussians", "width", "height", "forward_ms", "forward_backward_ms", "peak_mem_mb"}
+
+
+def test_raster_json_records(tmp_path, capsys):
+    out = tmp_path / "raster.json"
+    rows = raster(RasterArgs(sizes=[300], images=["48x32"], repeats=1, json=True, output=out))
+    printed = json.loads(capsys.readouterr().out)
+    assert printed == rows == json.loads(out.read_text())
+    assert {r["backend"] for r in rows} >= {"torch"}
+    for r in rows:
+        assert RASTER_KEYS <= r.keys()
+        assert r["forward_ms"] > 0 and r["forward_backward_ms"] > 0 and r["num_intersections"] > 0
+        assert (r["width"], r["height"], r["num_gaussians"]) == (48, 32, 300)
+
+
+def test_benchmark_scene_has_the_research_depth_complexity():
+    """At 600x400 the 3-sigma discs of the scene cover about 10x the image (as in the research note)."""
+    import math
+
+    g = benchmark_scene(20000)
+    sigma_px = 600 * g.scales.prod(dim=1) ** (1 / 3) / g.means[:, 2]
+    coverage = float((math.pi * (3 * sigma_px) ** 2).sum()) / (600 * 400)
+    assert 7 < coverage < 14
+    assert plain_pairs(g, benchmark_camera(300, 200)) > 20000
+
+
+def test_step_records(tmp_path):
+    rows = step(StepArgs(sizes=[500], width=40, height=30, repeats=1, backends=["torch"], output=tmp_path / "s.json"))
+    assert len(rows) == 1 and rows[0]["iterations_per_s"] > 0 and rows[0]["width"] == 40
+    assert json.loads((tmp_path / "s.json").read_text()) == rows
