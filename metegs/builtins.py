@@ -22,3 +22,10 @@ _losses.register("photometric", "metegs.losses.photometric:PhotometricLoss", des
 
 _methods = registry("method")
 _methods.register("3dgs", "metegs.methods:gaussian_splatting", description="plain 3D Gaussian Splatting (0.8·L1 + 0.2·D-SSIM)")
+
+_readers = registry("meteo_reader")
+_readers.register("csv", "metegs.meteo.readers.csv_reader:CsvReader", description="any delimited table of station records, described by options (columns, units, time zone)")
+_readers.register("metar", "metegs.meteo.readers.metar_reader:MetarReader", description="METAR/SPECI reports, bulletins and collectives (P/6/7 precipitation groups)")
+_readers.register("ghcnh", "metegs.meteo.readers.ghcnh_reader:GhcnhReader", description="NOAA GHCNh hourly pipe-separated .psv")
+_readers.register("isd", "metegs.meteo.readers.isd_reader:IsdReader", description="NOAA ISD full format (DS3505): visibility, AA liquid precipitation, MW present weather")
+_readers.register("open-meteo", "metegs.meteo.readers.open_meteo_reader:OpenMeteoReader", description="Open-Meteo hourly JSON (precipitation, visibility, wind)")

@@ -1,0 +1,53 @@
+"""Observation readers (registry kind ``meteo_reader``) and the single entry point ``read_observations``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from metegs.errors import DataError
+from metegs.meteo.observations import ObservationTable
+from metegs.meteo.readers.base import MeteoWarning, ObservationReader, Problems
+from metegs.registry import registry
+
+__all__ = ["MeteoWarning", "ObservationReader", "Problems", "detect_reader", "read_observations"]
+
+_HEAD_BYTES = 4096
+
+
+def detect_reader(path: str | Path) -> str:
+    """Registry name of the reader that recognises ``path``; a DataError lists the readers otherwise."""
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(path, "file does not exist" if not path.exists() else "is not a file")
+    with open(path, "rb") as f:
+        head = f.read(_HEAD_BYTES).decode("utf-8", errors="replace")
+    candidates = []
+    for entry in registry("meteo_reader").entries():
+        cls = entry.load()
+        can = getattr(cls, "can_read", None)
+        if can is not None:
+            candidates.append((getattr(cls, "priority", 100), entry.name, can))
+    for _, name, can in sorted(candidates):
+        if can(path, head):
+            return name
+    raise DataError(
+        path,
+        "cannot tell the format of this file; choose a reader with reader=NAME (CLI: --reader NAME): "
+        + ", ".join(registry("meteo_reader").names()),
+    )
+
+
+def read_observations(path: str | Path, reader: str | None = None, **options: Any) -> ObservationTable:
+    """Read a station record or forecast file into an ObservationTable.
+
+    ``reader`` names a registered reader (``csv``, ``metar``, ``ghcnh``, ``isd``, ``open-meteo`` or a
+    plugin's); None detects it from the file name and its first few KB. ``options`` go to the reader
+    (e.g. ``year=``/``month=`` for METAR, column names for csv); unknown options are a ConfigError.
+    """
+    path = Path(path)
+    name = reader if reader is not None else detect_reader(path)
+    if reader is not None and not path.exists():
+        raise DataError(path, "file does not exist")
+    cls = registry("meteo_reader").get(name)
+    return cls().read(path, **options)

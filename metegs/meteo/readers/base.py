@@ -1,0 +1,307 @@
+"""What every observation reader shares: options, bad-record accounting, time zones and time order.
+
+A reader is a class registered in the ``meteo_reader`` registry with ``name``, ``priority``,
+``can_read(path, head)`` (a cheap look at the file name and its first few KB) and
+``read(path, **options) -> ObservationTable``. Options are a dataclass (``Options``), so unknown or
+mistyped options fail with a ConfigError that lists the valid ones.
+
+Bad input: a value that cannot be used raises ``DataError`` naming the file, the line and the field
+(``on_error="raise"``, the default), or with ``on_error="skip"`` the record is skipped and counted;
+records that are skipped by rule (an unparsable METAR, a duplicate) are always counted. Each file gives
+at most one ``MeteoWarning`` that states how many records were skipped and shows the first reasons.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import re
+import types
+import typing
+import warnings
+from datetime import datetime, timedelta, timezone, tzinfo
+from pathlib import Path
+from typing import Any, ClassVar, Literal
+
+from metegs.errors import ConfigError, DataError
+from metegs.meteo.observations import Observation, ObservationTable, epoch_s
+
+
+class MeteoWarning(UserWarning):
+    """Records of a meteorological file were skipped or changed; the message counts them and says why."""
+
+
+@dataclasses.dataclass
+class CommonOptions:
+    """Options every reader accepts."""
+
+    on_error: Literal["raise", "skip"] = "raise"
+    """A bad value (negative rain, NaN, unreadable number): raise a DataError naming file, line and field, or skip the record (counted in one warning)."""
+    time_order: Literal["strict", "sort"] = "strict"
+    """``strict``: a time going backwards (per station) is bad input; ``sort``: sort the records by time."""
+    station: str | None = None
+    """Keep only this station (for files holding several)."""
+
+
+class Problems:
+    """Counts skipped records of one file and raises or warns about them."""
+
+    def __init__(self, path: Path | str, on_error: str = "raise", max_examples: int = 3):
+        self.path = path
+        self.on_error = on_error
+        self.count = 0
+        self.examples: list[str] = []
+        self.max_examples = max_examples
+        self.ignored = 0
+        self.ignored_examples: list[str] = []
+
+    @staticmethod
+    def where(line: int | None, field: str | None) -> str:
+        parts = []
+        if line is not None:
+            parts.append(f"line {line}")
+        if field:
+            parts.append(f"field {field!r}")
+        return ", ".join(parts)
+
+    def fail(self, line: int | None, field: str | None, message: str) -> None:
+        """A bad value: raise (``on_error="raise"``) or count the record as skipped."""
+        if self.on_error == "raise":
+            where = self.where(line, field)
+            raise DataError(self.path, f"{where}: {message}" if where else message)
+        self.skip(line, field, message)
+
+    def skip(self, line: int | None, field: str | None, message: str) -> None:
+        """Count a skipped record (always, whatever ``on_error`` says)."""
+        self.count += 1
+        if len(self.examples) < self.max_examples:
+            where = self.where(line, field)
+            self.examples.append(f"{where}: {message}" if where else message)
+
+    def ignore_value(self, line: int | None, field: str | None, message: str) -> None:
+        """Count one implausible value that is treated as not reported (the record itself is kept)."""
+        self.ignored += 1
+        if len(self.ignored_examples) < self.max_examples:
+            where = self.where(line, field)
+            self.ignored_examples.append(f"{where}: {message}" if where else message)
+
+    def warn(self, total: int | None = None, what: str = "records") -> None:
+        """One warning for the file if anything was skipped or ignored."""
+        parts = []
+        if self.count:
+            of = f" of {total}" if total is not None else ""
+            more = " ..." if self.count > len(self.examples) else ""
+            parts.append(f"skipped {self.count}{of} {what} ({'; '.join(self.examples)}{more})")
+        if self.ignored:
+            more = " ..." if self.ignored > len(self.ignored_examples) else ""
+            parts.append(
+                f"treated {self.ignored} implausible value(s) as not reported ({'; '.join(self.ignored_examples)}{more})"
+            )
+        if parts:
+            warnings.warn(f"{self.path}: {'; '.join(parts)}", MeteoWarning, stacklevel=4)
+
+
+class RecordError(Exception):
+    """Raised inside a reader for one bad field; the reader turns it into ``Problems.fail``."""
+
+    def __init__(self, field: str, message: str):
+        super().__init__(message)
+        self.field = field
+        self.message = message
+
+
+def finite_number(text: str, field: str, *, allow_negative: bool = True) -> float:
+    """``text`` as a finite float; NaN, infinities, junk and (optionally) negatives raise RecordError."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise RecordError(field, f"{text!r} is not a number") from None
+    if not math.isfinite(value):
+        raise RecordError(
+            field,
+            f"{text!r} is not a finite number (NaN/inf are not allowed; list it as a missing marker if it means 'missing')",
+        )
+    if not allow_negative and value < 0:
+        raise RecordError(field, f"negative value {value:g} is not physical")
+    return value
+
+
+def check_precip(value_mm: float, field: str) -> float:
+    """A precipitation depth or rate: finite and non-negative, else RecordError."""
+    if not math.isfinite(value_mm):
+        raise RecordError(field, f"precipitation {value_mm!r} is not finite")
+    if value_mm < 0:
+        raise RecordError(field, f"negative precipitation {value_mm:g} mm")
+    return value_mm
+
+
+_OFFSET = re.compile(r"^(?:UTC|GMT)?\s*([+-])(\d{1,2})(?::?(\d{2}))?$", re.IGNORECASE)
+
+
+def resolve_timezone(name: str | None) -> tzinfo:
+    """A tzinfo for ``UTC``, a fixed offset (``UTC+8``, ``+08:00``, ``-0500``) or an IANA name (``Asia/Shanghai``)."""
+    if name is None or name.strip().upper() in ("", "UTC", "Z", "GMT"):
+        return timezone.utc
+    m = _OFFSET.match(name.strip())
+    if m:
+        sign = 1 if m.group(1) == "+" else -1
+        return timezone(sign * timedelta(hours=int(m.group(2)), minutes=int(m.group(3) or 0)))
+    try:
+        from zoneinfo import ZoneInfo
+
+        return ZoneInfo(name.strip())
+    except Exception as exc:  # noqa: BLE001 - ZoneInfoNotFoundError, ValueError
+        raise ConfigError(
+            f"unknown time zone {name!r}: use UTC, an offset such as UTC+8, or an IANA name such as Asia/Shanghai"
+        ) from exc
+
+
+def _coerce_option(value: Any, annotation: Any, where: str) -> Any:
+    """Options given as strings (from the command line) converted to the option's type."""
+    origin = typing.get_origin(annotation)
+    args = typing.get_args(annotation)
+    if origin in (typing.Union, types.UnionType):
+        if value is None or (isinstance(value, str) and value.lower() in ("none", "null") and type(None) in args):
+            return None
+        errors = []
+        for arg in args:
+            if arg is type(None):
+                continue
+            try:
+                return _coerce_option(value, arg, where)
+            except ConfigError as exc:
+                errors.append(str(exc))
+        raise ConfigError(errors[0] if errors else f"{where}: bad value {value!r}")
+    if origin is Literal:
+        if value not in args:
+            raise ConfigError(f"{where}: {value!r} is not one of {', '.join(map(repr, args))}")
+        return value
+    if origin is tuple:
+        if isinstance(value, str):
+            value = [v.strip() for v in value.split(",")] if value else []
+        inner = args[0] if args else str
+        return tuple(_coerce_option(v, inner, where) for v in value)
+    if annotation is bool:
+        if isinstance(value, str):
+            if value.lower() in ("1", "true", "yes", "on"):
+                return True
+            if value.lower() in ("0", "false", "no", "off"):
+                return False
+            raise ConfigError(f"{where}: {value!r} is not true/false")
+        return bool(value)
+    if annotation in (int, float):
+        try:
+            out = annotation(value)
+        except (TypeError, ValueError):
+            raise ConfigError(f"{where}: {value!r} is not a{'n integer' if annotation is int else ' number'}") from None
+        return out
+    if annotation is str:
+        return str(value)
+    return value
+
+
+def make_options(cls: type, options: dict[str, Any], reader: str) -> Any:
+    """Build the reader's option dataclass; unknown names and bad values give a ConfigError listing the valid options."""
+    hints = typing.get_type_hints(cls)
+    names = [f.name for f in dataclasses.fields(cls)]
+    kwargs = {}
+    for key, value in options.items():
+        if key not in names:
+            raise ConfigError(f"reader {reader!r} has no option {key!r}; options: {', '.join(names)}")
+        kwargs[key] = _coerce_option(value, hints[key], f"reader {reader!r} option {key!r}")
+    try:
+        return cls(**kwargs)
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"reader {reader!r}: {exc}") from exc
+
+
+def order_records(records: list[Observation], problems: Problems, time_order: str) -> list[Observation]:
+    """Records sorted by (station, time): backwards times are bad input under ``strict``; exact duplicates are dropped and counted."""
+    by_station: dict[str, list[Observation]] = {}
+    for r in records:
+        by_station.setdefault(r.station, []).append(r)
+    out: list[Observation] = []
+    for station in by_station:
+        recs = by_station[station]
+        if time_order == "strict":
+            kept = []
+            for r in recs:
+                if kept and r.time_utc < kept[-1].time_utc:
+                    prev = kept[-1]
+                    problems.fail(
+                        r.line,
+                        "time",
+                        f"time {r.time_utc:%Y-%m-%d %H:%M}Z goes backwards (line {prev.line} is at "
+                        f"{prev.time_utc:%Y-%m-%d %H:%M}Z){' for station ' + station if station else ''}; "
+                        "pass time_order='sort' if the file is not in time order",
+                    )
+                    continue
+                kept.append(r)
+            recs = kept
+        else:
+            recs = sorted(recs, key=lambda r: epoch_s(r.time_utc))
+        previous: Observation | None = None
+        for r in recs:
+            if (
+                previous is not None
+                and r.time_utc == previous.time_utc
+                and dataclasses.replace(r, line=None) == dataclasses.replace(previous, line=None)
+            ):
+                problems.skip(r.line, None, f"duplicate of line {previous.line}")
+                continue
+            out.append(r)
+            previous = r
+    return out
+
+
+def read_text(path: Path) -> str:
+    """The file as text (UTF-8, undecodable bytes replaced); a DataError if it cannot be read."""
+    if not path.exists():
+        raise DataError(path, "file does not exist")
+    if not path.is_file():
+        raise DataError(path, "is not a file")
+    try:
+        return path.read_bytes().decode("utf-8", errors="replace")
+    except OSError as exc:
+        raise DataError(path, f"cannot read: {exc}") from exc
+
+
+class ObservationReader:
+    """Base class of the built-in readers (plugins only need the same four members)."""
+
+    name: ClassVar[str] = ""
+    """Registry name."""
+    priority: ClassVar[int] = 100
+    """Detection order: lower is tried first."""
+    Options: ClassVar[type] = CommonOptions
+    """The option dataclass of this reader."""
+
+    @classmethod
+    def can_read(cls, path: Path, head: str) -> bool:
+        """True if ``path`` (whose first few KB are ``head``) looks like this format."""
+        return False
+
+    def read(self, path: str | Path, **options: Any) -> ObservationTable:
+        """Read ``path`` into an ObservationTable; bad input raises DataError naming file, line and field."""
+        opts = make_options(self.Options, options, self.name)
+        path = Path(path)
+        problems = Problems(path, opts.on_error)
+        records, total, notes = self._read(path, opts, problems)
+        records = order_records(records, problems, opts.time_order)
+        if opts.station is not None:
+            records = [r for r in records if r.station == opts.station]
+            if not records:
+                raise DataError(path, f"no records of station {opts.station!r}")
+        problems.warn(total)
+        return ObservationTable(records, str(path), self.name, problems.count, notes)
+
+    def _read(self, path: Path, opts: Any, problems: Problems) -> tuple[list[Observation], int, list[str]]:
+        """Records (any order), the number of records seen, and notes."""
+        raise NotImplementedError
+
+
+def utc_datetime(
+    year: int, month: int, day: int, hour: int = 0, minute: int = 0, tz: tzinfo = timezone.utc
+) -> datetime:
+    """An aware UTC datetime from local fields in ``tz``; ValueError on impossible dates."""
+    return datetime(year, month, day, hour, minute, tzinfo=tz).astimezone(timezone.utc)
