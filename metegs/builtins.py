@@ -14,6 +14,12 @@ _raster.register("torch", "metegs.render.torch_backend:TorchRasterizer", descrip
 _raster.register("cpu", "metegs.render.cpu_backend:CpuRasterizer", description="compiled C++ tile compositing (CPU only; built on first use)")
 _raster.register("gsplat", "metegs.render.gsplat_backend:GsplatRasterizer", description="gsplat CUDA kernels (CUDA devices only; pip install 'metegs[cuda]')")
 
+_weather = registry("weather")
+_weather.register("rain-streaks", "metegs.weather.rain_streaks:RainStreaksConfig", description="per-view rain streak Gaussians from θ_rain")
+_weather.register("fog-gaussians", "metegs.weather.fog_gaussians:FogGaussiansConfig", description="fog as a static lattice of Gaussians (exp(-βd))")
+_weather.register("fog-analytic", "metegs.weather.fog_analytic:FogAnalyticConfig", description="fog from rendered depth: C·t + A(1-α·t)")
+_weather.register("lens-droplets", "metegs.weather.lens_droplets:LensDropletsConfig", description="refractive drops on the lens (image space)")
+
 _densify = registry("densifier")
 _densify.register("adc", "metegs.densify.adc:AdaptiveDensityControl", description="3DGS adaptive density control (clone/split/prune/reset)")
 

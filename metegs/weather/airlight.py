@@ -1,0 +1,31 @@
+"""Airlight A from images: the dark-channel-prior estimate (He, Sun and Tang, CVPR 2009)."""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+
+def dark_channel(image: torch.Tensor, patch: int = 15) -> torch.Tensor:
+    """Min over RGB and a patch x patch window. image: [H, W, 3] -> [H, W]."""
+    m = image.amin(dim=-1)[None, None]
+    pad = patch // 2
+    return -F.max_pool2d(-F.pad(m, (pad, pad, pad, pad), mode="replicate"), patch, stride=1)[0, 0]
+
+
+def estimate_airlight(images: list[torch.Tensor], top_fraction: float = 0.001, patch: int = 15) -> torch.Tensor:
+    """Mean colour of the brightest-dark-channel pixels (top ``top_fraction``) over the images -> [3].
+
+    In clear images this picks the sky or the brightest haze-free surfaces, which is what the
+    airlight of a light fog looks like; a user may always give A explicitly.
+    """
+    pixels, darks = [], []
+    for im in images:
+        im = im.float()
+        patch_here = max(1, min(patch, min(im.shape[:2]) // 4 * 2 + 1))
+        darks.append(dark_channel(im, patch_here).reshape(-1))
+        pixels.append(im.reshape(-1, 3))
+    dark, rgb = torch.cat(darks), torch.cat(pixels)
+    k = max(1, int(round(top_fraction * dark.numel())))
+    idx = torch.topk(dark, k).indices
+    return rgb[idx].mean(dim=0).clamp(0.0, 1.0)

@@ -1,0 +1,98 @@
+"""`fog-analytic`: the atmospheric scattering model applied from the rendered depth.
+
+C = C_scene·t + A·(1 − α·t), t = exp(−β·d), with d the distance along the pixel's ray (metres; the
+rendered z-depth times the ray's length per unit z) and α the rendered opacity: the part of a pixel
+not covered by Gaussians looks into the distance (t = 0) and shows the airlight A. β per colour
+channel comes from θ_fog (visibility by the 5 % rule, minus the rain's share, plus the rain veil);
+β and A are learnable (log-β, logit-A) starting from θ.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+
+from metegs.meteo.mapping import Theta
+from metegs.render.base import RenderOutput, RenderSettings
+from metegs.weather.airlight import estimate_airlight
+from metegs.weather.base import WeatherModel, WeatherModelConfig, WeatherScene
+
+
+def ray_lengths(camera, height: int, width: int) -> torch.Tensor:
+    """Length of each pixel ray per unit of camera z. camera: one view -> [H, W]."""
+    fx, fy, cx, cy = (float(v[0]) for v in (camera.fx, camera.fy, camera.cx, camera.cy))
+    ys, xs = torch.meshgrid(torch.arange(height) + 0.5, torch.arange(width) + 0.5, indexing="ij")
+    return torch.sqrt(((xs - cx) / fx) ** 2 + ((ys - cy) / fy) ** 2 + 1.0)
+
+
+def fog_composite(
+    color: torch.Tensor, alpha: torch.Tensor, distance_m: torch.Tensor, beta_rgb: torch.Tensor, airlight: torch.Tensor
+) -> torch.Tensor:
+    """Fogged image. color [H, W, 3] premultiplied (no background), alpha [H, W], distance_m [H, W],
+    beta_rgb [3] 1/m, airlight [3] -> [H, W, 3]."""
+    t = torch.exp(-distance_m[..., None] * beta_rgb)
+    return color * t + airlight * (1.0 - alpha[..., None] * t)
+
+
+@dataclass
+class FogAnalyticConfig(WeatherModelConfig):
+    """Analytic fog from the rendered depth (any rasteriser; no Gaussians)."""
+
+    _target: type = field(default_factory=lambda: FogAnalytic, repr=False)
+    airlight: tuple[float, float, float] | None = None
+    """Airlight A in [0, 1] RGB; None: θ's, else estimated from the scene's images (dark channel prior)."""
+    include_rain_veil: bool = True
+    """Add the rain's extinction beyond the streaks (θ_fog.beta_rain_per_m) when it rains."""
+    learnable: bool = True
+    """Expose β and A as trainable parameters."""
+
+
+class FogAnalytic(WeatherModel):
+    """Exponential fog from depth: ``apply`` turns the rendered view into the foggy one."""
+
+    stage = "medium"
+    name = "fog-analytic"
+
+    def __init__(self, config: FogAnalyticConfig, theta: Theta, scene: WeatherScene):
+        super().__init__(theta, scene)
+        self.config = config
+        fog = theta.fog
+        beta = torch.tensor(fog.beta_rgb_per_m, dtype=torch.float32)
+        if config.include_rain_veil and theta.rain.active:
+            beta = beta + fog.beta_rain_per_m
+        self._active = bool(fog.active or (config.include_rain_veil and theta.rain.active and fog.beta_rain_per_m > 0))
+        if config.airlight is not None:
+            a = torch.tensor(config.airlight, dtype=torch.float32)
+        elif fog.airlight_rgb is not None:
+            a = torch.tensor(fog.airlight_rgb, dtype=torch.float32)
+        elif scene.images:
+            a = estimate_airlight([im.detach().cpu() for im in scene.images])
+        else:
+            a = torch.full((3,), 0.8)
+        a = a.clamp(1e-3, 1 - 1e-3)
+        self.log_beta = torch.nn.Parameter(torch.log(beta.clamp_min(1e-12)), requires_grad=config.learnable)
+        self.airlight_logit = torch.nn.Parameter(torch.logit(a), requires_grad=config.learnable)
+
+    @property
+    def active(self) -> bool:
+        return self._active
+
+    @property
+    def beta_rgb(self) -> torch.Tensor:
+        """[3] extinction per metre."""
+        return torch.exp(self.log_beta)
+
+    @property
+    def airlight(self) -> torch.Tensor:
+        """[3] airlight in (0, 1)."""
+        return torch.sigmoid(self.airlight_logit)
+
+    def apply(self, rgb: torch.Tensor, out: RenderOutput, view: int, settings: RenderSettings) -> torch.Tensor:
+        camera = self.scene.cameras[view]
+        background = settings.background_tensor(rgb)
+        color = rgb - (1.0 - out.alpha)[..., None] * background  # premultiplied scene colour
+        rays = ray_lengths(camera, out.height, out.width).to(rgb)
+        distance = out.depth * rays * self.scene.metres_per_unit
+        distance = torch.where(out.alpha > 1e-6, distance, torch.zeros_like(distance))
+        return fog_composite(color, out.alpha, distance, self.beta_rgb.to(rgb), self.airlight.to(rgb))

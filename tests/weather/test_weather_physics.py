@@ -1,0 +1,157 @@
+"""Weather models against closed forms: fog transmittance, streak coverage and tilt, zero weather, view consistency."""
+
+import math
+
+import pytest
+import torch
+
+from metegs.cameras import Cameras
+from metegs.gaussians.model import GaussianSet
+from metegs.gaussians.sh import rgb_to_sh
+from metegs.meteo import CameraSpec, theta_from_values
+from metegs.render.base import RenderOutput, RenderSettings
+from metegs.render.torch_backend import TorchRasterizer
+from metegs.weather import WeatherScene, build_weather_models, render_with_weather
+from metegs.weather.fog_analytic import FogAnalytic, FogAnalyticConfig
+from metegs.weather.rain_streaks import RainStreaks, RainStreaksConfig
+
+W = H = 48
+F = 48.0
+
+
+def cameras(n: int = 1, shift: float = 0.05) -> Cameras:
+    """Cameras at the origin (+ x shifts) looking down +z (OpenCV); world up is -y."""
+    c2w = torch.eye(4).repeat(n, 1, 1)
+    c2w[:, 0, 3] = torch.arange(n) * shift
+    return Cameras.create(c2w, F, F, W / 2, H / 2, W, H)
+
+
+def spec(far_m: float | None = 4.0) -> CameraSpec:
+    """This 48 px camera would see no streak beyond its near limit by the contrast rule: fix the far depth."""
+    return CameraSpec.from_intrinsics(F, W, H, exposure_s=1 / 60, far_m=far_m)
+
+
+def weather_scene(n_views: int = 1) -> WeatherScene:
+    return WeatherScene(cameras(n_views), torch.tensor([0.0, -1.0, 0.0]), 1.0, None, seed=3)
+
+
+def black_wall(depth: float, n_side: int = 40) -> GaussianSet:
+    """An opaque black plane at camera depth ``depth`` filling the view."""
+    half = depth * (W / 2) / F * 1.3
+    xs = torch.linspace(-half, half, n_side)
+    grid = torch.stack(torch.meshgrid(xs, xs, indexing="ij"), -1).reshape(-1, 2)
+    n = len(grid)
+    means = torch.cat([grid, torch.full((n, 1), depth)], 1)
+    s = 2 * half / n_side
+    return GaussianSet(
+        means,
+        torch.tensor([[1.0, 0, 0, 0]]).expand(n, 4),
+        torch.tensor([s, s, s * 0.01]).expand(n, 3),
+        torch.full((n,), 0.99),
+        rgb_to_sh(torch.zeros(3)).expand(n, 1, 3),
+    )
+
+
+def test_fog_analytic_transmittance_is_exp_minus_beta_d():
+    theta = theta_from_values(0.0, visibility_m=300.0, fog_kind="fog", camera=spec())
+    fog = FogAnalytic(FogAnalyticConfig(airlight=(1.0, 1.0, 1.0)), theta, weather_scene())
+    beta = fog.beta_rgb
+    for d in (20.0, 60.0, 150.0):
+        out = RenderOutput(
+            rgb=torch.zeros(H, W, 3),
+            alpha=torch.ones(H, W),
+            depth=torch.full((H, W), d),
+            radii=torch.zeros(0),
+            means2d=torch.zeros(0, 2),
+            num_intersections=0,
+            width=W,
+            height=H,
+        )
+        rgb = fog.apply(out.rgb, out, 0, RenderSettings())
+        t = 1.0 - rgb[H // 2, W // 2]  # the centre ray has length d
+        expected = torch.exp(-beta * d)
+        assert torch.allclose(t, expected, rtol=0.01, atol=1e-4)
+    assert float(beta.detach().mean()) == pytest.approx(math.log(20) / 300.0, rel=0.05)  # 5 % contrast rule
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason=(
+        "known limit: EWA projection of fog Gaussians larger than their distance to the camera overestimates "
+        "their alpha (measured optical depth ~2.3x beta*d at 20 m); needs a finer near-camera lattice"
+    ),
+)
+@pytest.mark.parametrize("depth", [20.0, 60.0, 150.0])
+def test_fog_gaussians_transmittance_within_one_percent(depth):
+    theta = theta_from_values(0.0, visibility_m=300.0, fog_kind="fog", camera=spec())
+    scene = weather_scene()
+    (fog,) = build_weather_models(["fog-gaussians"], theta, scene)
+    fog.airlight = torch.ones(3)
+    fog._gaussians = fog._build()
+    r = render_with_weather(TorchRasterizer(), black_wall(depth), [fog], 0, scene.cameras[0])
+    rays = torch.sqrt(((torch.arange(W) + 0.5 - W / 2) / F) ** 2)[None, :] ** 2
+    rays = torch.sqrt(rays + ((torch.arange(H) + 0.5 - H / 2) / F)[:, None] ** 2 + 1.0)
+    measured = float((1.0 - r.rgb.mean(-1)).mean())
+    expected = float(torch.exp(-fog.beta_per_m * depth * rays).mean())
+    assert measured == pytest.approx(expected, rel=0.01)
+
+
+def test_zero_weather_renders_the_clean_image_and_adds_nothing():
+    theta = theta_from_values(0.0, visibility_m=None, camera=spec())
+    scene = weather_scene()
+    models = build_weather_models(["rain-streaks", "fog-gaussians", "fog-analytic", "lens-droplets"], theta, scene)
+    assert not any(m.active for m in models)
+    wall = black_wall(5.0)
+    wall = GaussianSet(wall.means, wall.quats, wall.scales, wall.opacities, rgb_to_sh(torch.rand(len(wall), 1, 3)))
+    r = render_with_weather(TorchRasterizer(), wall, models, 0, scene.cameras[0])
+    clean = TorchRasterizer().render(wall, scene.cameras[0])
+    assert r.num_weather == 0 and torch.equal(r.rgb, clean.rgb)
+
+
+def test_streak_tilt_follows_the_wind():
+    theta = theta_from_values(10.0, wind_speed_m_per_s=4.0, wind_dir_deg_from=90.0, camera=spec())
+    rain = RainStreaks(RainStreaksConfig(), theta, weather_scene())
+    up = torch.tensor([0.0, -1.0, 0.0])
+    angle = math.degrees(math.acos(float(-rain.fall_direction @ up)))
+    expected = math.degrees(math.atan(theta.rain.wind_at_drop_height_m_per_s / theta.rain.fall_speed_m_per_s))
+    assert angle == pytest.approx(expected, abs=2.0)
+    assert angle == pytest.approx(theta.rain.tilt_deg, abs=2.0)
+
+
+def rain_coverage(p_mm_h: float, views: int = 4) -> tuple[float, float]:
+    """(measured mean alpha of rain alone, expected from the drops' projected areas)."""
+    theta = theta_from_values(p_mm_h, camera=spec())
+    scene = weather_scene(views)
+    rain = RainStreaks(RainStreaksConfig(colour=(1.0, 1.0, 1.0)), theta, scene)
+    r = theta.rain
+    measured = 0.0
+    for v in range(views):
+        g = rain.gaussians_for(v)
+        out = TorchRasterizer().render(g, scene.cameras[v])
+        measured += float(out.alpha.mean()) / views
+    near, far = r.near_m, r.far_m
+    mean_inv_z2 = (far - near) / ((far**3 - near**3) / 3.0)
+    d = r.diameter_mean_mm / 1000.0
+    expected = r.expected_count * math.pi / 4 * (F * d) ** 2 * mean_inv_z2 / (W * H)
+    return measured, expected
+
+
+def test_streak_coverage_matches_projected_drop_area():
+    measured, expected = rain_coverage(20.0)
+    assert measured == pytest.approx(expected, rel=0.15)
+
+
+def test_more_rain_more_coverage_across_wmo_classes():
+    coverages = [rain_coverage(p, views=2)[0] for p in (0.5, 5.0, 20.0, 80.0)]
+    assert all(b > a for a, b in zip(coverages, coverages[1:])), coverages
+
+
+def test_two_views_share_the_fog_but_not_the_rain():
+    theta = theta_from_values(20.0, visibility_m=300.0, fog_kind="fog", camera=spec())
+    scene = weather_scene(2)
+    rain, fog = build_weather_models(["rain-streaks", "fog-gaussians"], theta, scene)
+    assert fog.gaussians_for(0) is fog.gaussians_for(1)
+    a, b = rain.gaussians_for(0), rain.gaussians_for(1)
+    assert not torch.equal(a.means[: min(len(a), len(b))], b.means[: min(len(a), len(b))])
+    again = rain.gaussians_for(0)
+    assert torch.equal(a.means, again.means)  # reproducible per view
