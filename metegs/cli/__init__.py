@@ -15,5 +15,5 @@ def run_cli(main: Callable[[], Any]) -> None:
     try:
         main()
     except MetegsError as exc:
-        Console(stderr=True).print(f"[bold red]error:[/] {exc}", highlight=False)
+        Console(stderr=True, soft_wrap=True).print(f"[bold red]error:[/] {exc}", highlight=False)
         raise SystemExit(2) from None
