@@ -19,9 +19,7 @@ import platform
 import subprocess
 import sys
 import threading
-import warnings
 from pathlib import Path
-from typing import Any
 
 import torch
 from torch.autograd.function import once_differentiable
@@ -30,6 +28,7 @@ from metegs.cameras import Cameras
 from metegs.errors import MetegsError
 from metegs.gaussians.model import GaussianSet
 from metegs.render.base import RenderOutput, RenderSettings
+from metegs.render.optional import OptionalComponent
 from metegs.render.pipeline import finish_render, resolve_sh_degree
 from metegs.render.tiles import TILE_SIZE, TileBins
 
@@ -62,8 +61,7 @@ class CpuBackendWarning(UserWarning):
     """The ``cpu`` rasteriser is unavailable; ``auto`` uses ``torch`` instead."""
 
 
-_lock = threading.Lock()
-_state: dict[str, Any] = {"ext": None, "error": None, "warned": False, "announced": False}
+_announced = threading.Event()  # the "compiling ..." message is printed once per process
 
 
 def _cpu_tag() -> str:
@@ -91,28 +89,20 @@ def _tail(text: str, lines: int = 25) -> str:
     return "\n".join(text.strip().splitlines()[-lines:])
 
 
+def _describe_build_failure(exc: Exception) -> str:
+    if isinstance(exc, CpuExtensionError):
+        reason = exc.args[0]
+    elif isinstance(exc, subprocess.CalledProcessError | FileNotFoundError):
+        reason = (f"the C++ compiler ({os.environ.get('CXX', 'c++')}) is missing or does not work "
+                  f"(install g++ or set CXX): {type(exc).__name__}: {_tail(str(exc))}")
+    else:
+        reason = f"{type(exc).__name__}: {_tail(str(exc))}"
+    return f"cannot build the metegs CPU rasteriser extension (in {CSRC}): {reason}"
+
+
 def load_extension():
-    """The compiled compositing module (built on first use; raises `CpuExtensionError` if impossible)."""
-    if _state["ext"] is not None:
-        return _state["ext"]
-    with _lock:
-        if _state["ext"] is not None:
-            return _state["ext"]
-        if _state["error"] is not None:
-            raise CpuExtensionError(_state["error"])
-        try:
-            _state["ext"] = _build()
-        except Exception as exc:  # noqa: BLE001 - any failure means "not available", with the reason kept
-            if isinstance(exc, CpuExtensionError):
-                reason = exc.args[0]
-            elif isinstance(exc, subprocess.CalledProcessError | FileNotFoundError):
-                reason = (f"the C++ compiler ({os.environ.get('CXX', 'c++')}) is missing or does not work "
-                          f"(install g++ or set CXX): {type(exc).__name__}: {_tail(str(exc))}")
-            else:
-                reason = f"{type(exc).__name__}: {_tail(str(exc))}"
-            _state["error"] = f"cannot build the metegs CPU rasteriser extension (in {CSRC}): {reason}"
-            raise CpuExtensionError(_state["error"]) from exc
-    return _state["ext"]
+    """The compiled extension module (built on first use; raises `CpuExtensionError` if impossible)."""
+    return EXTENSION.load()
 
 
 def _build():
@@ -134,8 +124,8 @@ def _build():
         or not ninja_file.exists()
         or " ".join(CFLAGS) not in ninja_file.read_text(errors="replace")
     )
-    if stale and not _state["announced"]:
-        _state["announced"] = True
+    if stale and not _announced.is_set():
+        _announced.set()
         print(f"compiling the metegs CPU rasteriser (first use, ~1 min) in {build_dir} ...",
               file=sys.stderr, flush=True)
     return cpp_extension.load(
@@ -147,6 +137,12 @@ def _build():
         build_directory=str(build_dir),
         verbose=False,
     )
+
+
+EXTENSION = OptionalComponent(
+    _build, _describe_build_failure, CpuExtensionError, CpuBackendWarning, "the `torch` rasteriser is used instead"
+)
+"""The compiled extension of this backend (built once per process)."""
 
 
 class ProjectShade(torch.autograd.Function):
@@ -229,16 +225,7 @@ class CpuRasterizer:
     @staticmethod
     def available(device: torch.device | str = "cpu") -> bool:
         """True on a CPU device once the extension builds/loads (the answer is cached; warns once if not)."""
-        if torch.device(device).type != "cpu":
-            return False
-        try:
-            load_extension()
-        except CpuExtensionError as exc:
-            if not _state["warned"]:
-                _state["warned"] = True
-                warnings.warn(f"{exc}; the `torch` rasteriser is used instead", CpuBackendWarning, stacklevel=2)
-            return False
-        return True
+        return torch.device(device).type == "cpu" and EXTENSION.available()
 
     def __init__(self, cull_tiles: bool = True):
         self.cull_tiles = cull_tiles

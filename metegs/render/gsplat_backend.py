@@ -14,16 +14,13 @@ reference: classic (non-antialiased) EWA with ``eps2d``, opacity-aware tile exte
 
 from __future__ import annotations
 
-import threading
-import warnings
-from typing import Any
-
 import torch
 
 from metegs.cameras import Cameras
 from metegs.errors import MetegsError
 from metegs.gaussians.model import GaussianSet
 from metegs.render.base import RenderOutput, RenderSettings
+from metegs.render.optional import OptionalComponent
 from metegs.render.pipeline import finish_render, resolve_sh_degree
 
 
@@ -35,24 +32,9 @@ class GsplatBackendWarning(UserWarning):
     """The ``gsplat`` rasteriser is unavailable; ``auto`` uses another backend."""
 
 
-_lock = threading.Lock()
-_state: dict[str, Any] = {"module": None, "error": None, "warned": False}
-
-
 def load_gsplat():
     """The imported and smoke-tested gsplat module (raises `GsplatUnavailableError` with the reason)."""
-    if _state["module"] is not None:
-        return _state["module"]
-    with _lock:
-        if _state["module"] is None:
-            if _state["error"] is not None:
-                raise GsplatUnavailableError(_state["error"])
-            try:
-                _state["module"] = _import_and_smoke_test()
-            except Exception as exc:  # noqa: BLE001 - any failure means "not available", with the reason kept
-                _state["error"] = f"gsplat is not usable here: {type(exc).__name__}: {str(exc).strip()[:500]}"
-                raise GsplatUnavailableError(_state["error"]) from exc
-    return _state["module"]
+    return GSPLAT.load()
 
 
 def _import_and_smoke_test():
@@ -77,6 +59,16 @@ def _import_and_smoke_test():
     return gsplat
 
 
+GSPLAT = OptionalComponent(
+    _import_and_smoke_test,
+    lambda exc: f"gsplat is not usable here: {type(exc).__name__}: {str(exc).strip()[:500]}",
+    GsplatUnavailableError,
+    GsplatBackendWarning,
+    "another rasteriser is used instead",
+)
+"""gsplat, imported and smoke-tested once per process (only when a CUDA device asks for it)."""
+
+
 class GsplatRasterizer:
     """gsplat CUDA rasterisation (CUDA tensors only)."""
 
@@ -85,16 +77,7 @@ class GsplatRasterizer:
     @staticmethod
     def available(device: torch.device | str = "cuda") -> bool:
         """True on a CUDA device where gsplat imports and renders (cached; warns once if not)."""
-        if torch.device(device).type != "cuda":
-            return False
-        try:
-            load_gsplat()
-        except GsplatUnavailableError as exc:
-            if not _state["warned"]:
-                _state["warned"] = True
-                warnings.warn(f"{exc}; another rasteriser is used instead", GsplatBackendWarning, stacklevel=2)
-            return False
-        return True
+        return torch.device(device).type == "cuda" and GSPLAT.available()
 
     def render(self, gaussians: GaussianSet, camera: Cameras, settings: RenderSettings | None = None) -> RenderOutput:
         """Render one view. camera: a single view (len 1)."""

@@ -199,9 +199,9 @@ def test_available_on_cpu_only():
 
 
 def test_build_failure_makes_backend_unavailable_with_one_warning(monkeypatch, cam):
-    monkeypatch.setitem(cpu_backend._state, "ext", None)
-    monkeypatch.setitem(cpu_backend._state, "error", "cannot build ...: g++: not found")
-    monkeypatch.setitem(cpu_backend._state, "warned", False)
+    monkeypatch.setattr(cpu_backend.EXTENSION, "value", None)
+    monkeypatch.setattr(cpu_backend.EXTENSION, "error", "cannot build ...: g++: not found")
+    monkeypatch.setattr(cpu_backend.EXTENSION, "warned", False)
     with pytest.warns(CpuBackendWarning, match="g\\+\\+: not found"):
         assert not CpuRasterizer.available("cpu")
     with warnings.catch_warnings():

@@ -37,9 +37,9 @@ def test_render_refuses_cpu_tensors(cam):
 
 def test_unavailable_reason_is_kept_and_warned_once(monkeypatch):
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
-    monkeypatch.setitem(gsplat_backend._state, "module", None)
-    monkeypatch.setitem(gsplat_backend._state, "error", None)
-    monkeypatch.setitem(gsplat_backend._state, "warned", False)
+    monkeypatch.setattr(gsplat_backend.GSPLAT, "value", None)
+    monkeypatch.setattr(gsplat_backend.GSPLAT, "error", None)
+    monkeypatch.setattr(gsplat_backend.GSPLAT, "warned", False)
     with pytest.warns(gsplat_backend.GsplatBackendWarning, match="no CUDA device"):
         assert not GsplatRasterizer.available("cuda")
     assert not GsplatRasterizer.available("cuda")  # cached, no second warning (warnings are errors here)
