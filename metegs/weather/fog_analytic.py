@@ -15,8 +15,8 @@ import torch
 
 from metegs.meteo.mapping import Theta
 from metegs.render.base import RenderOutput, RenderSettings
-from metegs.weather.airlight import estimate_airlight
 from metegs.weather.base import WeatherModel, WeatherModelConfig, WeatherScene
+from metegs.weather.medium import choose_airlight, fog_called_for, fog_extinction_rgb
 
 
 def ray_lengths(camera, height: int, width: int) -> torch.Tensor:
@@ -57,20 +57,9 @@ class FogAnalytic(WeatherModel):
     def __init__(self, config: FogAnalyticConfig, theta: Theta, scene: WeatherScene):
         super().__init__(theta, scene)
         self.config = config
-        fog = theta.fog
-        beta = torch.tensor(fog.beta_rgb_per_m, dtype=torch.float32)
-        if config.include_rain_veil and theta.rain.active:
-            beta = beta + fog.beta_rain_per_m
-        self._active = bool(fog.active or (config.include_rain_veil and theta.rain.active and fog.beta_rain_per_m > 0))
-        if config.airlight is not None:
-            a = torch.tensor(config.airlight, dtype=torch.float32)
-        elif fog.airlight_rgb is not None:
-            a = torch.tensor(fog.airlight_rgb, dtype=torch.float32)
-        elif scene.images:
-            a = estimate_airlight([im.detach().cpu() for im in scene.images])
-        else:
-            a = torch.full((3,), 0.8)
-        a = a.clamp(1e-3, 1 - 1e-3)
+        beta = fog_extinction_rgb(theta, config.include_rain_veil).float()
+        self._active = fog_called_for(theta, config.include_rain_veil)
+        a = choose_airlight(config.airlight, theta, scene).clamp(1e-3, 1 - 1e-3)
         self.log_beta = torch.nn.Parameter(torch.log(beta.clamp_min(1e-12)), requires_grad=config.learnable)
         self.airlight_logit = torch.nn.Parameter(torch.logit(a), requires_grad=config.learnable)
 

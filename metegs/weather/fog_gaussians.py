@@ -25,8 +25,8 @@ from metegs.gaussians.sh import rgb_to_sh
 from metegs.meteo.mapping import Theta
 from metegs.meteo.physics import dilogarithm
 from metegs.render.base import ALPHA_MIN
-from metegs.weather.airlight import estimate_airlight
 from metegs.weather.base import WeatherModel, WeatherModelConfig, WeatherScene
+from metegs.weather.medium import choose_airlight, fog_called_for, fog_extinction_rgb
 
 
 def truncated_lattice_opacity(
@@ -85,21 +85,10 @@ class FogGaussians(WeatherModel):
     def __init__(self, config: FogGaussiansConfig, theta: Theta, scene: WeatherScene):
         super().__init__(theta, scene)
         self.config = config
-        fog = theta.fog
-        beta = float(sum(fog.beta_rgb_per_m) / 3.0)
-        if config.include_rain_veil and theta.rain.active:
-            beta += fog.beta_rain_per_m
-        self.beta_per_m = beta
-        self._active = bool(fog.active or (config.include_rain_veil and theta.rain.active)) and beta > 0
-        if config.airlight is not None:
-            a = torch.tensor(config.airlight, dtype=torch.float32)
-        elif fog.airlight_rgb is not None:
-            a = torch.tensor(fog.airlight_rgb, dtype=torch.float32)
-        elif scene.images:
-            a = estimate_airlight([im.detach().cpu() for im in scene.images])
-        else:
-            a = torch.full((3,), 0.8)
-        self.airlight = a.clamp(0.0, 1.0)
+        self.beta_per_m = float(fog_extinction_rgb(theta, config.include_rain_veil).mean())
+        """Grey extinction of the medium (the mean over R, G, B), 1/m."""
+        self._active = fog_called_for(theta, config.include_rain_veil) and self.beta_per_m > 0
+        self.airlight = choose_airlight(config.airlight, theta, scene).clamp(0.0, 1.0)
         self._gaussians = self._build() if self._active else None
 
     @property
