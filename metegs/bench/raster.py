@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 import statistics
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import torch
 
@@ -151,7 +151,3 @@ def run_raster_benchmark(
                 if progress is not None:
                     progress(records[-1])
     return records
-
-
-def records_as_dicts(records: list[RasterRecord]) -> list[dict]:
-    return [asdict(r) for r in records]

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import statistics
 import time
-from dataclasses import asdict, dataclass, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -85,7 +85,3 @@ def run_step_benchmark(
             if progress is not None:
                 progress(records[-1])
     return records
-
-
-def step_records_as_dicts(records: list[StepRecord]) -> list[dict]:
-    return [asdict(r) for r in records]

@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field, replace
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import torch
@@ -14,20 +15,15 @@ from rich.table import Table
 from metegs.cli import run_cli
 from metegs.config import atomic_write_text
 from metegs.errors import ConfigError
+from metegs.render.select import usable_backends
 
 
 @dataclass
-class RasterArgs:
-    """Forward and forward+backward time and peak memory of every rasteriser backend, as ratios over `torch`."""
+class _BenchArgs:
+    """Options every benchmark shares."""
 
-    sizes: list[int] = field(default_factory=lambda: [5000, 20000, 100000])
-    """Numbers of Gaussians."""
-    images: list[str] = field(default_factory=lambda: ["150x100", "300x200", "600x400"])
-    """Image sizes as WIDTHxHEIGHT."""
     backends: list[str] | None = None
     """Backends to time (default: every registered backend usable on the device; `torch` first)."""
-    repeats: int = 3
-    """Timed steps per configuration (after one warm-up step); the median is reported."""
     threads: int | None = None
     """torch intra-op threads (default: torch's)."""
     device: str = "cpu"
@@ -37,9 +33,40 @@ class RasterArgs:
     output: Path | None = None
     """Also write the JSON records to this file."""
 
+    def setup(self) -> list[str]:
+        """Apply the thread count; -> the backends to time."""
+        if self.threads:
+            torch.set_num_threads(self.threads)
+        return self.backends or sorted(usable_backends(self.device), key=lambda n: n != "torch")
+
+    def report(self, records: list, table: Table, row: Callable[[dict], list[str]]) -> list[dict]:
+        """Write/print the records (JSON, or ``table`` filled by ``row``) -> them as dicts."""
+        rows = [asdict(r) for r in records]
+        if self.output:
+            atomic_write_text(self.output, json.dumps(rows, indent=2))
+        if self.json:
+            print(json.dumps(rows, indent=2))
+            return rows
+        for r in rows:
+            table.add_row(*row(r))
+        Console().print(table)
+        return rows
+
 
 @dataclass
-class StepArgs:
+class RasterArgs(_BenchArgs):
+    """Forward and forward+backward time and peak memory of every rasteriser backend, as ratios over `torch`."""
+
+    sizes: list[int] = field(default_factory=lambda: [5000, 20000, 100000])
+    """Numbers of Gaussians."""
+    images: list[str] = field(default_factory=lambda: ["150x100", "300x200", "600x400"])
+    """Image sizes as WIDTHxHEIGHT."""
+    repeats: int = 3
+    """Timed steps per configuration (after one warm-up step); the median is reported."""
+
+
+@dataclass
+class StepArgs(_BenchArgs):
     """Full training steps (render, loss, backward, Adam) on the synthetic scene: ms per step, it/s, peak RSS."""
 
     sizes: list[int] = field(default_factory=lambda: [4000, 20000, 60000])
@@ -48,42 +75,26 @@ class StepArgs:
     """Image width of the synthetic scene (default: its default, 160)."""
     height: int | None = None
     """Image height of the synthetic scene (default: its default, 120)."""
-    backends: list[str] | None = None
-    """Backends to time (default: every registered backend usable on the device)."""
     repeats: int = 10
     """Timed steps per configuration (after one warm-up step); the median is reported."""
-    threads: int | None = None
-    """torch intra-op threads (default: torch's)."""
-    device: str = "cpu"
-    """Torch device."""
-    json: bool = False
-    """Print the records as a JSON list instead of a table."""
-    output: Path | None = None
-    """Also write the JSON records to this file."""
 
 
-def usable_backends(device: torch.device) -> list[str]:
-    from metegs.registry import registry
-
-    names = []
-    for name in registry("rasterizer").names():
-        available = getattr(registry("rasterizer").get(name), "available", None)
-        if available is None or available(device):
-            names.append(name)
-    return sorted(names, key=lambda n: n != "torch")
+def _table(title: str, columns: tuple[str, ...]) -> Table:
+    table = Table(title=title)
+    for col in columns:
+        table.add_column(col, justify="right")
+    return table
 
 
 def raster(args: RasterArgs) -> list[dict]:
-    from metegs.bench.raster import records_as_dicts, run_raster_benchmark
+    from metegs.bench.raster import run_raster_benchmark
 
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    backends = args.setup()
     device = torch.device(args.device)
     try:
         images = [tuple(int(v) for v in s.lower().split("x")) for s in args.images]
     except ValueError:
         raise ConfigError(f"--images: expected WIDTHxHEIGHT, got {args.images}") from None
-    backends = args.backends or usable_backends(device)
     console = Console(stderr=True)
     console.print(
         f"torch {torch.__version__}, {torch.get_num_threads()} threads, device {device}; backends {', '.join(backends)}"
@@ -97,20 +108,12 @@ def raster(args: RasterArgs) -> list[dict]:
             device,
             progress=lambda r: status.update(f"done {r.backend} {r.num_gaussians} @ {r.width}x{r.height}"),
         )
-    rows = records_as_dicts(records)
-    if args.output:
-        atomic_write_text(args.output, json.dumps(rows, indent=2))
-    if args.json:
-        print(json.dumps(rows, indent=2))
-        return rows
-    ref = {(r["num_gaussians"], r["width"], r["height"]): r for r in rows if r["backend"] == "torch"}
-    table = Table(title="rasteriser: forward / forward+backward (median ms), speed-up over torch, peak memory")
-    for col in ("backend", "N", "image", "pairs", "fwd ms", "fwd+bwd ms", "x torch (f+b)", "x floor (f+b)", "peak MB"):
-        table.add_column(col, justify="right")
-    for r in rows:
+    ref = {(r.num_gaussians, r.width, r.height): r.forward_backward_ms for r in records if r.backend == "torch"}
+
+    def row(r: dict) -> list[str]:
         key = (r["num_gaussians"], r["width"], r["height"])
-        speedup = ref[key]["forward_backward_ms"] / r["forward_backward_ms"] if key in ref else float("nan")
-        table.add_row(
+        speedup = ref[key] / r["forward_backward_ms"] if key in ref else float("nan")
+        return [
             r["backend"],
             str(r["num_gaussians"]),
             f"{r['width']}x{r['height']}",
@@ -120,25 +123,26 @@ def raster(args: RasterArgs) -> list[dict]:
             f"{speedup:.1f}",
             f"{r['forward_backward_ms'] / r['floor_ms']:.1f}",
             f"{r['peak_mem_mb']:.0f}",
-        )
-    Console().print(table)
-    return rows
+        ]
+
+    table = _table(
+        "rasteriser: forward / forward+backward (median ms), speed-up over torch, peak memory",
+        ("backend", "N", "image", "pairs", "fwd ms", "fwd+bwd ms", "x torch (f+b)", "x floor (f+b)", "peak MB"),
+    )
+    return args.report(records, table, row)
 
 
 def step(args: StepArgs) -> list[dict]:
-    from metegs.bench.step import run_step_benchmark, step_records_as_dicts
+    from metegs.bench.step import run_step_benchmark
     from metegs.engine.config import TrainConfig
 
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    backends = args.setup()
     config = TrainConfig(method="3dgs", device=args.device, threads=args.threads or 0)
     synth = config.dataset.synthetic
     if args.width or args.height:
         synth = replace(synth, width=args.width or synth.width, height=args.height or synth.height)
         config = replace(config, dataset=replace(config.dataset, synthetic=synth, downscale=1))
-    backends = args.backends or [b for b in usable_backends(torch.device(args.device))]
-    console = Console(stderr=True)
-    with console.status("benchmarking training steps ...") as status:
+    with Console(stderr=True).status("benchmarking training steps ...") as status:
         records = run_step_benchmark(
             config,
             args.sizes,
@@ -146,17 +150,9 @@ def step(args: StepArgs) -> list[dict]:
             args.repeats,
             progress=lambda r: status.update(f"done {r.backend} {r.num_gaussians}"),
         )
-    rows = step_records_as_dicts(records)
-    if args.output:
-        atomic_write_text(args.output, json.dumps(rows, indent=2))
-    if args.json:
-        print(json.dumps(rows, indent=2))
-        return rows
-    table = Table(title="training step (render + loss + backward + Adam), median")
-    for col in ("backend", "N", "image", "ms/step", "it/s", "RSS before MB", "step peak +MB"):
-        table.add_column(col, justify="right")
-    for r in rows:
-        table.add_row(
+
+    def row(r: dict) -> list[str]:
+        return [
             r["backend"],
             str(r["num_gaussians"]),
             f"{r['width']}x{r['height']}",
@@ -164,9 +160,13 @@ def step(args: StepArgs) -> list[dict]:
             f"{r['iterations_per_s']:.1f}",
             f"{r['rss_before_mb']:.0f}",
             f"{r['step_peak_mb']:.0f}",
-        )
-    Console().print(table)
-    return rows
+        ]
+
+    table = _table(
+        "training step (render + loss + backward + Adam), median",
+        ("backend", "N", "image", "ms/step", "it/s", "RSS before MB", "step peak +MB"),
+    )
+    return args.report(records, table, row)
 
 
 def entrypoint() -> None:

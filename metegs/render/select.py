@@ -11,6 +11,17 @@ AUTO_ORDER_CUDA = ("gsplat", "cpu", "torch")
 AUTO_ORDER_CPU = ("cpu", "torch")
 
 
+def backend_usable(name: str, device: torch.device | str) -> bool:
+    """Whether the registered backend ``name`` can render on ``device`` (backends without ``available`` always can)."""
+    available = getattr(registry("rasterizer").get(name), "available", None)
+    return available is None or bool(available(torch.device(device)))
+
+
+def usable_backends(device: torch.device | str) -> list[str]:
+    """Every registered backend that can render on ``device``."""
+    return [name for name in registry("rasterizer").names() if backend_usable(name, device)]
+
+
 def resolve_backend(name: str, device: torch.device | str) -> str:
     """The backend name ``auto`` stands for on ``device`` (the first registered one that is usable)."""
     if name != "auto":
@@ -19,11 +30,8 @@ def resolve_backend(name: str, device: torch.device | str) -> str:
         return name
     order = AUTO_ORDER_CUDA if torch.device(device).type == "cuda" else AUTO_ORDER_CPU
     for candidate in order:
-        if candidate in registry("rasterizer"):
-            cls = registry("rasterizer").get(candidate)
-            available = getattr(cls, "available", None)
-            if available is None or available(torch.device(device)):
-                return candidate
+        if candidate in registry("rasterizer") and backend_usable(candidate, device):
+            return candidate
     return "torch"
 
 

@@ -6,22 +6,25 @@ import torch
 from metegs.gaussians.model import GaussianSet
 from metegs.registry import registry
 from metegs.render import RenderSettings
+from metegs.render.select import backend_usable
 from metegs.testing import random_scene
 
 
-def usable_backends():
-    out = []
-    for name in registry("rasterizer").names():
-        cls = registry("rasterizer").get(name)
-        available = getattr(cls, "available", None)
-        marks = []
-        if available is not None and not available(torch.device("cpu")):
-            marks = [pytest.mark.skip(reason=f"backend {name!r} is not available on this machine")]
-        out.append(pytest.param(name, marks=marks, id=name))
-    return out
+def backend_params():
+    """Every registered backend; those unusable on this machine's CPU are skipped."""
+    return [
+        pytest.param(
+            name,
+            id=name,
+            marks=[]
+            if backend_usable(name, "cpu")
+            else [pytest.mark.skip(reason=f"backend {name!r} is not available on this machine")],
+        )
+        for name in registry("rasterizer").names()
+    ]
 
 
-@pytest.fixture(params=usable_backends())
+@pytest.fixture(params=backend_params())
 def rasterizer(request):
     return registry("rasterizer").get(request.param)()
 
