@@ -73,6 +73,27 @@ inline __attribute__((always_inline)) double neg_exp<double>(double x) {
   return std::exp(x);
 }
 
+// One Gaussian's alpha at one pixel centre, the single definition used by forward and backward so that
+// both compute it bit-identically (the skip decision alpha >= 1/255 must agree).
+template <typename scalar_t>
+struct PixelAlpha {
+  scalar_t dx, dy, power, e, oe, alpha;  // offset, exponent, exp(min(power, 0)), o e, min(o e, alpha_max)
+};
+
+template <typename scalar_t>
+inline __attribute__((always_inline)) PixelAlpha<scalar_t> pixel_alpha(scalar_t px, scalar_t py, scalar_t mx,
+                                                                       scalar_t my, scalar_t a, scalar_t b,
+                                                                       scalar_t c, scalar_t o) {
+  PixelAlpha<scalar_t> r;
+  r.dx = px - mx;
+  r.dy = py - my;
+  r.power = scalar_t(-0.5) * ((a * r.dx * r.dx) + (c * r.dy * r.dy)) - (b * r.dx) * r.dy;
+  r.e = neg_exp<scalar_t>(r.power < scalar_t(0) ? r.power : scalar_t(0));
+  r.oe = o * r.e;
+  r.alpha = r.oe < Consts<scalar_t>::alpha_max ? r.oe : Consts<scalar_t>::alpha_max;
+  return r;
+}
+
 // Pixel range [pbeg, pend) of a tile (whole rows, row-major) outside which a Gaussian's alpha stays
 // below 1/255: at row offset dy the quadratic form is at least dy^2 (ac - b^2) / a, so only rows with
 // |dy| <= sqrt(2 ln(255 o) a / (ac - b^2)) can contribute (with a small safety margin). Skipping the
@@ -148,11 +169,7 @@ void forward_kernel(const scalar_t* __restrict__ means2d, const scalar_t* __rest
         row_range(my, a, b, c, o, y0, pbeg, pend);
 #pragma omp simd
         for (int p = pbeg; p < pend; ++p) {
-          const scalar_t dx = px[p] - mx, dy = py[p] - my;
-          const scalar_t power = scalar_t(-0.5) * ((a * dx * dx) + (c * dy * dy)) - (b * dx) * dy;
-          const scalar_t e = neg_exp<scalar_t>(power < scalar_t(0) ? power : scalar_t(0));
-          const scalar_t oe = o * e;
-          const scalar_t alpha = oe < C::alpha_max ? oe : C::alpha_max;
+          const scalar_t alpha = pixel_alpha(px[p], py[p], mx, my, a, b, c, o).alpha;
           const scalar_t valid = alpha >= C::alpha_min ? scalar_t(1) - done[p] : scalar_t(0);
           const scalar_t Tn = T[p] * (scalar_t(1) - alpha);
           const scalar_t stop = Tn < C::t_min ? valid : scalar_t(0);  // T would fall below T_MIN
@@ -258,11 +275,8 @@ void backward_kernel(const scalar_t* __restrict__ means2d, const scalar_t* __res
         scalar_t gmx = 0, gmy = 0, ga = 0, gb = 0, gc_ = 0, go = 0, gz = 0;
 #pragma omp simd reduction(+ : gmx, gmy, ga, gb, gc_, go, gz)
         for (int p = pbeg; p < pend; ++p) {
-          const scalar_t dx = px[p] - mx, dy = py[p] - my;
-          const scalar_t power = scalar_t(-0.5) * ((a * dx * dx) + (c * dy * dy)) - (b * dx) * dy;
-          const scalar_t e = neg_exp<scalar_t>(power < scalar_t(0) ? power : scalar_t(0));
-          const scalar_t oe = o * e;
-          const scalar_t alpha = oe < C::alpha_max ? oe : C::alpha_max;
+          const auto pa = pixel_alpha(px[p], py[p], mx, my, a, b, c, o);
+          const scalar_t dx = pa.dx, dy = pa.dy, power = pa.power, e = pa.e, oe = pa.oe, alpha = pa.alpha;
           const scalar_t listed = jj < last[p] ? scalar_t(1) : scalar_t(0);
           const scalar_t valid = alpha >= C::alpha_min ? listed : scalar_t(0);
           const scalar_t inv_om = scalar_t(1) / (scalar_t(1) - alpha);  // alpha <= 0.99
