@@ -62,6 +62,7 @@ class FogAnalytic(WeatherModel):
         a = choose_airlight(config.airlight, theta, scene).clamp(1e-3, 1 - 1e-3)
         self.log_beta = torch.nn.Parameter(torch.log(beta.clamp_min(1e-12)), requires_grad=config.learnable)
         self.airlight_logit = torch.nn.Parameter(torch.logit(a), requires_grad=config.learnable)
+        self._rays: dict[int, torch.Tensor] = {}
 
     @property
     def active(self) -> bool:
@@ -78,10 +79,11 @@ class FogAnalytic(WeatherModel):
         return torch.sigmoid(self.airlight_logit)
 
     def apply(self, rgb: torch.Tensor, out: RenderOutput, view: int, settings: RenderSettings) -> torch.Tensor:
-        camera = self.scene.cameras[view]
         background = settings.background_tensor(rgb)
         color = rgb - (1.0 - out.alpha)[..., None] * background  # premultiplied scene colour
-        rays = ray_lengths(camera, out.height, out.width).to(rgb)
+        if view not in self._rays:  # the cameras are fixed: one ray-length map per view
+            self._rays[view] = ray_lengths(self.scene.cameras[view], out.height, out.width)
+        rays = self._rays[view].to(rgb)
         distance = out.depth * rays * self.scene.metres_per_unit
         distance = torch.where(out.alpha > 1e-6, distance, torch.zeros_like(distance))
         return fog_composite(color, out.alpha, distance, self.beta_rgb.to(rgb), self.airlight.to(rgb))

@@ -113,6 +113,7 @@ class RainStreaks(WeatherModel):
         self.count = int(count) if rain.active else 0
         """Streaks drawn per view."""
         self.subsample = (self.count / rain.expected_count) if rain.expected_count > 0 else 1.0
+        self._colours: dict[int, torch.Tensor] = {}
         self.colour_env_weight = rain.colour_env_weight
         self.colour_ambient_weight = rain.colour_ambient_weight
 
@@ -121,7 +122,12 @@ class RainStreaks(WeatherModel):
         return self.theta.rain.active and self.count > 0
 
     def colour_for(self, view: int) -> torch.Tensor:
-        """[3] environment-lit drop colour of view ``view``."""
+        """[3] environment-lit drop colour of view ``view`` (computed once per view)."""
+        if view not in self._colours:
+            self._colours[view] = self._colour_of(view)
+        return self._colours[view]
+
+    def _colour_of(self, view: int) -> torch.Tensor:
         if self.config.colour is not None:
             return torch.tensor(self.config.colour, dtype=torch.float32)
         if not self.scene.images:
