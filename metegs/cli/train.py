@@ -100,6 +100,14 @@ def main(argv: list[str] | None = None) -> dict:
         + (f"{lp:.4f}" if lp is not None else "null (backbone weights unavailable; the reason is in metrics.json)")
         + f", {metrics['num_gaussians']} Gaussians; wrote {trainer.run_dir}"
     )
+    if getattr(c, "compare_baseline", False):
+        from metegs.engine.compare import comparison_table, train_baseline, write_comparison
+
+        console.print(f"[bold]baseline[/]: plain 3dgs on the same photos -> {trainer.run_dir / 'baseline-3dgs'}")
+        rows = {"3dgs": train_baseline(trainer, console), c.method: metrics}
+        console.print(comparison_table(rows))
+        write_comparison(trainer.run_dir / "comparison.json", rows)
+        metrics = {**metrics, "baseline": rows["3dgs"]}
     return metrics
 
 

@@ -19,6 +19,8 @@ class SyntheticSceneConfig:
     """Seed of the scene layout, textures and camera jitter."""
     num_points: int = 4000
     """Number of coloured surface points sampled for initialisation (like SfM points)."""
+    metres_per_unit: float = 10.0
+    """Metres per scene unit: the default scene is a town square about 150 m across, seen from 80 m."""
 
 
 @dataclass

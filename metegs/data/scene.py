@@ -27,7 +27,7 @@ class SceneData:
     clean_image_paths: list[Path] | None = None
     """Clean reference image file per view, when the scene provides them."""
     depths: list[np.ndarray] | None = None
-    """Exact per-view depth maps (float32 HxW, metres along the optical axis), when known."""
+    """Exact per-view depth maps (float32 HxW, scene units along the optical axis; × ``metric_scale`` for metres), when known."""
     mask_paths: list[Path] | None = None
     """Per-view mask files (white = keep), when the scene provides them."""
     train_indices: list[int] = field(default_factory=list)

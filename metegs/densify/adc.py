@@ -7,6 +7,7 @@ Order per step (as gsplat): statistics after backward, optimiser step, then refi
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import torch
@@ -78,6 +79,10 @@ class AdaptiveDensityControl:
         reset = int(round(c.reset_every * max_steps)) if c.reset_every > 0 else 0
         self.reset_every = reset if reset >= 3 * self.every else 0
         self.state: DensifyState | None = None
+        self.prune_rule: Callable[[GaussianModel, float], torch.Tensor] | None = None
+        """Optional per-Gaussian opacity thresholds ``(model, prune_opacity) -> [N]`` used instead of the scalar
+        ``prune_opacity`` (e.g. `metegs.densify.depth_prune.DepthAwarePruning`); its prunes are reported as
+        ``prune_depth``."""
 
     def schedule(self) -> dict[str, int]:
         """The schedule in steps (for logs and tests)."""
@@ -144,7 +149,12 @@ class AdaptiveDensityControl:
         n = len(model)
         prune = torch.zeros(n, dtype=torch.bool, device=model.device)
         prune[: split.shape[0]] |= split
-        prune |= torch.sigmoid(params["opacities"]) < c.prune_opacity
+        if self.prune_rule is None:
+            low_opacity = torch.sigmoid(params["opacities"]) < c.prune_opacity
+        else:
+            thresholds = self.prune_rule(model, c.prune_opacity).to(params["opacities"])
+            low_opacity = torch.sigmoid(params["opacities"]) < thresholds
+        prune |= low_opacity
         if self.reset_every and step > self.reset_every:
             prune |= torch.exp(params["scales"]).amax(dim=1) > c.prune_scale3d * self.extent
         prune |= ~torch.isfinite(params["means"]).all(dim=1)
@@ -152,7 +162,10 @@ class AdaptiveDensityControl:
         if n_prune:
             select_rows(params, optimizers, ~prune)
         self.state = DensifyState.zeros(len(model), model.device)
-        return {"clone": n_clone, "split": n_split, "prune": n_prune}
+        report = {"clone": n_clone, "split": n_split, "prune": n_prune}
+        if self.prune_rule is not None:
+            report["prune_depth"] = int(low_opacity.sum())
+        return report
 
     def _split_samples(self, model: GaussianModel, idx: torch.Tensor) -> dict[str, torch.Tensor]:
         """``split_samples`` new Gaussians per index, drawn from the parent's distribution, scales shrunk."""

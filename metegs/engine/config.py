@@ -13,6 +13,7 @@ from metegs.data.config import DatasetConfig
 from metegs.densify.adc import ADCConfig
 from metegs.engine.optim import OptimConfig
 from metegs.losses.photometric import PhotometricLossConfig
+from metegs.weather.conditions import ConditionsConfig
 
 
 @dataclass
@@ -60,6 +61,11 @@ class TrainConfig(InstantiateConfig):
     """CPU threads for torch (0: torch's default)."""
     load_checkpoint: Path | None = None
     """Resume from this checkpoint file (.ckpt) of an earlier run."""
+    degrade: Literal["off", "auto", "rain", "fog", "rain+fog"] = "off"
+    """Degrade a clean scene in memory before training, with the weather of `conditions` (the clean images become
+    the references): auto = the method's weather kinds on the built-in synthetic scene, off for scenes from files."""
+    conditions: ConditionsConfig = field(default_factory=ConditionsConfig)
+    """The weather of the capture (met record and time, or explicit values)."""
     background: Literal["black", "white", "random"] = "black"
     """Background colour behind the Gaussians during training (evaluation uses black, or white for 'white')."""
     eval_every: float = 0.25

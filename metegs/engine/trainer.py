@@ -16,6 +16,7 @@ from metegs import __version__
 from metegs.config import atomic_write_text, save_yaml
 from metegs.data.dataset import Dataset
 from metegs.data.parsers.base import parse_scene
+from metegs.data.scene import SceneData
 from metegs.engine.checkpoint import load_checkpoint, save_checkpoint
 from metegs.engine.config import TrainConfig
 from metegs.engine.init import random_points_in_view_overlap, scene_extent
@@ -23,6 +24,7 @@ from metegs.engine.optim import make_optimizers, means_lr_at
 from metegs.engine.progress import TrainProgress
 from metegs.errors import ConfigError
 from metegs.gaussians.model import GaussianModel
+from metegs.meteo import Theta
 from metegs.render import RenderSettings, make_rasterizer
 from metegs.render.select import resolve_backend
 
@@ -46,7 +48,7 @@ def seed_everything(seed: int) -> None:
 class Trainer:
     """Plain 3DGS training of scene Gaussians on the training views."""
 
-    def __init__(self, config: TrainConfig, run_dir: Path | None = None, console=None):
+    def __init__(self, config: TrainConfig, run_dir: Path | None = None, console=None, scene: SceneData | None = None):
         self._created = time.perf_counter()
         self.device = resolve_device(config.device)
         backend = resolve_backend(config.backend, self.device)
@@ -56,7 +58,10 @@ class Trainer:
         torch.set_flush_denormal(True)  # tiny transmittances/gradients otherwise slow CPU arithmetic ~30x
         self.console = console
         seed_everything(config.seed)
-        self.scene = parse_scene(config.data, config.parser, config.dataset)
+        self.decisions: dict[str, str] = {}
+        """What the run chose to do or skip, and why (printed once, saved as decisions.json)."""
+        self.theta: Theta | None = None
+        self.scene = scene if scene is not None else self.prepare_scene(parse_scene(config.data, config.parser, config.dataset))
         self.dataset = Dataset(self.scene, config.dataset, device=self.device)
         if not self.dataset.train_indices:
             raise ConfigError("the scene has no training views")
@@ -72,10 +77,57 @@ class Trainer:
         self.history: list[dict] = []
         self.train_seconds = 0.0
         self.run_dir = Path(run_dir) if run_dir is not None else self._default_run_dir()
+        self.setup_method()
         if config.load_checkpoint is not None:
             self.load(config.load_checkpoint)
 
     # --- setup -------------------------------------------------------------------------------------
+    def decide(self, key: str, text: str) -> None:
+        """Record (and print once) a choice the run made about what to do or skip."""
+        self.decisions[key] = text
+        if self.console is not None:
+            self.console.print(f"[dim]{key}:[/] {text}")
+
+    def weather_kinds(self) -> set[str]:
+        """Weather kinds the method models (``degrade=auto`` synthesises these); plain 3DGS models none."""
+        return {"rain", "fog"}
+
+    def degrade_kinds(self, scene: SceneData) -> set[str]:
+        """Kinds to synthesise on this scene (empty: train on its photos as they are)."""
+        mode = self.config.degrade
+        if mode == "off":
+            return set()
+        if mode == "auto":
+            return self.weather_kinds() if scene.parser == "synthetic" else set()
+        return set(mode.split("+"))
+
+    def weather_theta(self, scene: SceneData) -> Theta:
+        """θ of the configured conditions for this scene's cameras (computed once)."""
+        from metegs.weather.conditions import scene_metres_per_unit, theta_for_cameras
+
+        if self.theta is None:
+            mpu = scene_metres_per_unit(self.config.conditions, scene.metric_scale)
+            self.theta = theta_for_cameras(self.config.conditions, scene.cameras, mpu)
+        return self.theta
+
+    def prepare_scene(self, scene: SceneData) -> SceneData:
+        """The scene to train on: as parsed, or degraded in memory with the run's weather (``degrade``)."""
+        kinds = self.degrade_kinds(scene)
+        if not kinds:
+            return scene
+        from metegs.synth.degrade import degrade_scene
+        from metegs.weather.conditions import describe, scene_metres_per_unit
+
+        if scene.images is None and scene.image_paths is None:
+            raise ConfigError("--degrade needs the scene's images")
+        theta = self.weather_theta(scene)
+        degraded, _ = degrade_scene(
+            scene, theta, kinds="+".join(sorted(kinds, reverse=True)), seed=self.config.seed,
+            metres_per_unit=scene_metres_per_unit(self.config.conditions, scene.metric_scale),
+        )
+        self.decide("degrade", f"{'+'.join(sorted(kinds, reverse=True))} synthesised on the clean views: {describe(theta)}")
+        return degraded
+
     def _default_run_dir(self) -> Path:
         c = self.config
         scene_name = Path(c.data).resolve().name if c.data is not None else "synthetic"
@@ -123,12 +175,30 @@ class Trainer:
         m = self.dataset.masks[index][..., None]
         return image * m + background * (1.0 - m)
 
-    def train_step(self, index: int) -> dict[str, float]:
-        """Render one training view, backpropagate, update the parameters and densify on schedule."""
+    def reference(self, index: int, background: torch.Tensor) -> torch.Tensor:
+        """What a render of view ``index`` is judged against [H, W, 3]: the clean image when the scene has one
+        (weather-degraded datasets), else the photo."""
+        if self.dataset.clean_images is None:
+            return self.target(index, background)
+        image = self.dataset.clean_images[index]
+        if self.dataset.masks is None:
+            return image
+        m = self.dataset.masks[index][..., None]
+        return image * m + background * (1.0 - m)
+
+    def setup_method(self) -> None:
+        """Build what a method adds to plain 3DGS (weather, networks, extra losses); nothing here."""
+
+    def schedule_step(self) -> None:
+        """SH degree and position learning rate for the current step."""
         self.model.active_sh_degree = self.sh_degree_at(self.step)
         self.optimizers["means"].param_groups[0]["lr"] = means_lr_at(
             self.step, self.config.max_steps, self.config.optim, self.extent
         )
+
+    def train_step(self, index: int) -> dict[str, float]:
+        """Render one training view, backpropagate, update the parameters and densify on schedule."""
+        self.schedule_step()
         bg = self.background(training=True)
         out = self.render(index, background=bg)
         target = self.target(index, bg)
@@ -149,6 +219,7 @@ class Trainer:
         c = self.config
         self.run_dir.mkdir(parents=True, exist_ok=True)
         save_yaml(c, self.run_dir / "config.yml", header={"metegs_version": __version__})
+        self.save_decisions()
         eval_every = int(round(c.eval_every * c.max_steps)) if c.eval_every > 0 else 0
         order = self._view_order()
         with TrainProgress(c.max_steps, start=self.step, enabled=c.progress, console=self.console) as progress:
@@ -164,6 +235,11 @@ class Trainer:
                     self.save()
         self.save()
         return self.finish()
+
+    def save_decisions(self) -> None:
+        """decisions.json: what the run chose to do or skip and why, with the weather θ when there is one."""
+        record = {"decisions": self.decisions, "theta": None if self.theta is None else self.theta.to_dict()}
+        atomic_write_text(self.run_dir / "decisions.json", json.dumps(record, indent=2, default=str))
 
     def _view_order(self):
         rng = np.random.default_rng(self.config.seed + self.step)
@@ -183,7 +259,7 @@ class Trainer:
         preds = self.render_views(idx)
         bg = self.background(training=False)
         lpips_model, reason = (None, "skipped during training") if quick else self._lpips()
-        m = evaluate_images(preds, [self.target(i, bg) for i in idx], lpips_model=lpips_model, lpips_reason=reason)
+        m = evaluate_images(preds, [self.reference(i, bg) for i in idx], lpips_model=lpips_model, lpips_reason=reason)
         entry = {
             "step": self.step,
             "train_seconds": round(self.train_seconds, 3),
@@ -215,6 +291,7 @@ class Trainer:
             "backend": self.config.backend,
             "device": str(self.device),
             "split": split,
+            "reference": "clean" if self.dataset.clean_images is not None else "photo",
             "num_views": len(idx),
             "psnr": m["psnr"],
             "ssim": m["ssim"],
@@ -244,7 +321,7 @@ class Trainer:
         for i, img in zip(indices, self.render_views(indices)):
             name = Path(self.dataset.names[i]).stem
             save_image(folder / f"{name}.png", img)
-            save_image(folder / f"{name}_gt.png", self.target(i, self.background(training=False)))
+            save_image(folder / f"{name}_gt.png", self.reference(i, self.background(training=False)))
 
     # --- checkpoints -------------------------------------------------------------------------------
     def save(self) -> Path:
@@ -257,6 +334,7 @@ class Trainer:
             "history": self.history,
             "train_seconds": self.train_seconds,
             "metegs_version": __version__,
+            **self.extra_state(),
         }
         return save_checkpoint(self.run_dir / "checkpoints" / f"step-{self.step:06d}.ckpt", payload)
 
@@ -271,3 +349,11 @@ class Trainer:
         self.step = int(ckpt["step"])
         self.history = list(ckpt.get("history", []))
         self.train_seconds = float(ckpt.get("train_seconds", 0.0))
+        self.load_extra_state(ckpt)
+
+    def extra_state(self) -> dict:
+        """What a method adds to a checkpoint besides the scene Gaussians (none for plain 3DGS)."""
+        return {}
+
+    def load_extra_state(self, ckpt: dict) -> None:
+        """Restore what `extra_state` saved."""

@@ -49,6 +49,8 @@ class WeatherModel(torch.nn.Module):
 
     stage: ClassVar[Stage] = "gaussians"
     name: ClassVar[str] = "weather"
+    transient: ClassVar[bool] = False
+    """True when the Gaussians differ in every view (rain, snow: each photo is its own instant)."""
 
     def __init__(self, theta: Theta, scene: WeatherScene):
         super().__init__()

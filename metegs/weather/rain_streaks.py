@@ -84,6 +84,7 @@ class RainStreaks(WeatherModel):
 
     stage = "gaussians"
     name = "rain-streaks"
+    transient = True
 
     def __init__(self, config: RainStreaksConfig, theta: Theta, scene: WeatherScene):
         super().__init__(theta, scene)

@@ -46,7 +46,7 @@ def test_shapes_ranges_and_split(scene):
         assert 0.0 <= img.min() and img.max() <= 1.0
         assert depth.shape == (48, 64) and np.isfinite(depth).all() and (depth > 0).all()
     assert scene.points.shape == (500, 3) and scene.point_colors.shape == (500, 3)
-    assert scene.metric_scale == 1.0 and np.allclose(scene.up, [0, 0, 1])
+    assert scene.metric_scale == SyntheticSceneConfig().metres_per_unit and np.allclose(scene.up, [0, 0, 1])
     assert torch.allclose(scene.cameras.exposure_time_s, torch.tensor(1 / 250))
     scene.cameras.validate("synthetic")
 

@@ -5,7 +5,8 @@ Each file holds ``camera_angle_x`` (horizontal field of view, radians) and ``fra
 length is ``0.5 * W / tan(0.5 * camera_angle_x)`` for square pixels, with W, H from the optional ``w``/``h``
 keys or else the first image; the principal point is the image centre. Views come from the train file
 (training) and the test file (testing; the val file is used for testing when there is no test file).
-The images are RGBA: `metegs.data.images.load_image` composites them on a white background.
+The images are RGBA: `metegs.data.images.load_image` composites them on a white background. Clean references
+(as `metegs-synth` writes them) come from the sibling folders ``train_clean/``, ``test_clean/``...
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import numpy as np
 from metegs.cameras import Cameras
 from metegs.data.config import DatasetConfig
 from metegs.data.images import image_size
+from metegs.data.parsers.clean import find_clean_paths
 from metegs.data.parsers.nerfstudio import gl_matrix, gl_to_cv, read_json, warn_missing
 from metegs.data.scene import SceneData
 from metegs.errors import DataError
@@ -61,6 +63,7 @@ class BlenderParser:
         cams = Cameras.create(c2w, focal, focal, width / 2.0, height / 2.0, width, height)
         return SceneData(
             cameras=cams, names=[v[1] for v in views], image_paths=[v[2] for v in views],
+            clean_image_paths=find_clean_paths(path, [v[2] for v in views]),
             train_indices=[i for i, v in enumerate(views) if v[0] == "train"],
             test_indices=[i for i, v in enumerate(views) if v[0] == "test"],
             source=path,

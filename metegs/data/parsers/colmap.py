@@ -9,6 +9,8 @@ FULL_OPENCV are undistorted when ``--dataset.undistort`` is on (the default): ea
 once with OpenCV to a pinhole camera (``cv2.getOptimalNewCameraMatrix`` with alpha=0, same size, so
 there are no black borders) and cached as PNG in ``<scene>/.metegs_undistorted/``; the scene then
 points at the cached files. Fisheye and other models are refused with a DataError naming the model.
+Clean references (as `metegs-synth` writes them) come from ``<scene>/images_clean/`` for views that were
+not undistorted.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ import numpy as np
 from metegs.cameras import Cameras, to_homogeneous
 from metegs.data.config import DatasetConfig
 from metegs.data.images import load_image
+from metegs.data.parsers.clean import find_clean_paths
 from metegs.data.scene import SceneData, split_every_nth
 from metegs.errors import DataError
 
@@ -212,6 +215,7 @@ class ColmapParser:
         train, test = split_every_nth(len(images), options.test_every)
         return SceneData(
             cameras=cams, names=[im.name for im in images], image_paths=paths,
+            clean_image_paths=find_clean_paths(path, paths) if all(p.is_relative_to(image_dir) for p in paths) else None,
             train_indices=train, test_indices=test, points=points, point_colors=colors,
             up=up_from_cameras(np.stack(c2w)), metric_scale=None, source=path,
         )

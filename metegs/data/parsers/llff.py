@@ -5,7 +5,8 @@ columns are [down, right, backwards], then a column [H, W, focal] at the origina
 by near/far bounds. Rows match the image files in sorted filename order. ``images/`` is used when present,
 else the ``images_N/`` folder with the smallest N; the focal length is rescaled to the size of the images
 actually found and the principal point is the image centre. Masks come from the matching ``masks/`` or
-``masks_N/`` folder (same file stems). There are no 3D points and no metric scale.
+``masks_N/`` folder (same file stems), clean references (as `metegs-synth` writes them) from the sibling
+``images_N_clean/`` folder. There are no 3D points and no metric scale.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ import numpy as np
 from metegs.cameras import Cameras
 from metegs.data.config import DatasetConfig
 from metegs.data.images import image_size, list_images
+from metegs.data.parsers.clean import find_clean_paths
 from metegs.data.parsers.colmap import up_from_cameras
 from metegs.data.scene import SceneData, split_every_nth
 from metegs.errors import DataError
@@ -96,6 +98,7 @@ class LLFFParser:
         train, test = split_every_nth(len(images), options.test_every)
         return SceneData(
             cameras=cams, names=[p.name for p in images], image_paths=images,
+            clean_image_paths=find_clean_paths(path, images),
             mask_paths=mask_paths(path, images, image_dir), train_indices=train, test_indices=test,
             up=up_from_cameras(c2w), source=path,
         )

@@ -5,7 +5,10 @@ Intrinsics ``fl_x, fl_y, cx, cy, w, h`` are read at the top level and may be ove
 world frame is kept as is (nerfstudio's world is +Z up). Frames whose image file is missing are
 skipped with one warning. The split comes from ``train_filenames`` / ``test_filenames`` (``val_filenames``
 when there is no test list) when present, else every n-th view is held out. ``ply_file_path`` points
-(x, y, z and optional red, green, blue) are read with a small numpy PLY reader.
+(x, y, z and optional red, green, blue) are read with a small numpy PLY reader. Clean references (as
+`metegs-synth` writes them) come from the sibling folder of the image folder (``images_clean/``), and a
+per-frame ``depth_file_path`` naming a ``.npy`` file (float32 [H, W] z-depth in scene units, as
+`metegs-synth` writes them) gives the scene's depth maps when every frame has one.
 
 Lens distortion is unsupported for transforms.json: non-zero ``k1..k4, p1, p2`` (or
 ``distortion_params``) and non-perspective ``camera_model`` values raise a DataError; undistort the
@@ -25,6 +28,7 @@ import torch
 
 from metegs.cameras import Cameras, opengl_to_opencv
 from metegs.data.config import DatasetConfig
+from metegs.data.parsers.clean import find_clean_paths
 from metegs.data.scene import SceneData, split_every_nth
 from metegs.errors import DataError
 
@@ -106,9 +110,11 @@ class NerfstudioParser:
         names = [v["name"] for v in present]
         train, test = _split(meta, names, source.parent, options.test_every)
         points, colors = self._points(meta, source)
+        paths = [v["path"] for v in present]
         return SceneData(
-            cameras=cams, names=names, image_paths=[v["path"] for v in present],
-            train_indices=train, test_indices=test, points=points, point_colors=colors, source=path,
+            cameras=cams, names=names, image_paths=paths, clean_image_paths=find_clean_paths(source.parent, paths),
+            depths=_npy_depths(present, source), train_indices=train, test_indices=test, points=points,
+            point_colors=colors, source=path,
         )
 
     @staticmethod
@@ -123,6 +129,8 @@ class NerfstudioParser:
             raise DataError(source, f"{where} has no 'transform_matrix'")
         _check_model(frame, source, where)
         view = {"name": os.path.normpath(str(frame["file_path"])), "path": source.parent / str(frame["file_path"])}
+        depth = frame.get("depth_file_path")
+        view["depth"] = source.parent / str(depth) if isinstance(depth, str) and depth.endswith(".npy") else None
         view["c2w"] = gl_matrix(frame["transform_matrix"], source, where)
         for key in _INTRINSICS:
             value = frame.get(key, meta.get(key))
@@ -140,6 +148,22 @@ class NerfstudioParser:
         if not ply:
             return None, None
         return read_ply_points(source.parent / str(ply))
+
+
+def _npy_depths(views: list[dict], source: Path) -> list[np.ndarray] | None:
+    """Depth maps [H, W] float32 of every view from ``.npy`` depth files, or None when a view has none."""
+    if not views or any(v["depth"] is None for v in views):
+        return None
+    depths = []
+    for v in views:
+        try:
+            d = np.load(v["depth"], allow_pickle=False)
+        except (OSError, ValueError) as exc:
+            raise DataError(v["depth"], f"cannot read the depth map: {exc}") from exc
+        if d.shape != (int(v["h"]), int(v["w"])):
+            raise DataError(v["depth"], f"depth map has shape {list(d.shape)}, expected [{int(v['h'])}, {int(v['w'])}]")
+        depths.append(d.astype(np.float32))
+    return depths
 
 
 def _check_model(obj: dict, source: Path, where: str) -> None:

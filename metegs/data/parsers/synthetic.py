@@ -492,6 +492,8 @@ def build_scene(cfg: SyntheticSceneConfig, test_every: int = 8) -> SceneData:
     """The whole synthetic scene as `SceneData` (images in memory, exact depths, surface points)."""
     if cfg.width < 1 or cfg.height < 1:
         raise DataError("synthetic", f"width and height must be positive, got {cfg.width}x{cfg.height}")
+    if not cfg.metres_per_unit > 0:
+        raise DataError("synthetic", f"metres_per_unit must be positive, got {cfg.metres_per_unit}")
     if cfg.num_views < 1:
         raise DataError("synthetic", f"num_views must be positive, got {cfg.num_views}")
     rng = np.random.default_rng(cfg.seed)
@@ -518,7 +520,7 @@ def build_scene(cfg: SyntheticSceneConfig, test_every: int = 8) -> SceneData:
         points=points,
         point_colors=colors,
         up=np.array([0.0, 0.0, 1.0], dtype=np.float32),
-        metric_scale=1.0,
+        metric_scale=cfg.metres_per_unit,
         source=None,
         image_space="srgb",
     )

@@ -1,0 +1,62 @@
+"""Train plain 3DGS on the very photos a weather-aware run used, and compare their clean-view metrics."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+from rich.console import Console
+from rich.table import Table
+
+from metegs.config import atomic_write_text
+from metegs.engine.config import TrainConfig
+
+METRIC_KEYS = ("psnr", "ssim", "lpips", "num_gaussians", "train_seconds")
+
+
+def baseline_config(config: TrainConfig) -> TrainConfig:
+    """Plain `3dgs` with the run's data, schedule, seed and hardware choices (no weather, no degrading)."""
+    from metegs.registry import registry
+
+    base = registry("method").get("3dgs")()
+    shared = (
+        "data", "parser", "output_dir", "max_steps", "seed", "backend", "device", "threads", "background",
+        "eval_every", "checkpoint_every", "save_renders", "lpips_net", "lpips_download", "progress", "dataset",
+    )
+    return replace(base, **{k: getattr(config, k) for k in shared}, degrade="off", conditions=config.conditions)
+
+
+def train_baseline(trainer, console: Console | None = None) -> dict:
+    """Train `3dgs` on ``trainer``'s scene (degraded photos included) into RUN_DIR/baseline-3dgs; its metrics."""
+    from metegs.engine.trainer import Trainer
+
+    config = baseline_config(trainer.config)
+    baseline = Trainer(config, run_dir=trainer.run_dir / "baseline-3dgs", console=console, scene=trainer.scene)
+    return baseline.train()
+
+
+def comparison_table(rows: dict[str, dict]) -> Table:
+    """A rich table of clean-view metrics, one row per method."""
+    table = Table(title="clean held-out views")
+    for col in ("method", "PSNR dB", "SSIM", "LPIPS", "Gaussians", "train s"):
+        table.add_column(col, justify="right" if col != "method" else "left")
+    for name, m in rows.items():
+        lp = m.get("lpips")
+        table.add_row(
+            name, f"{m['psnr']:.2f}", f"{m['ssim']:.4f}", "null" if lp is None else f"{lp:.4f}",
+            str(m["num_gaussians"]), f"{m['train_seconds']:.1f}",
+        )
+    return table
+
+
+def write_comparison(path, rows: dict[str, dict]) -> None:
+    """comparison.json: the metrics of each method and the PSNR / SSIM differences to the first row."""
+    names = list(rows)
+    first = rows[names[0]]
+    record = {
+        "methods": {n: {k: rows[n].get(k) for k in METRIC_KEYS} for n in names},
+        "delta_vs_first": {
+            n: {"psnr": rows[n]["psnr"] - first["psnr"], "ssim": rows[n]["ssim"] - first["ssim"]} for n in names[1:]
+        },
+    }
+    atomic_write_text(path, json.dumps(record, indent=2))

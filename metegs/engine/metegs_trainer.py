@@ -1,0 +1,253 @@
+"""The MeteGS dual-branch trainer.
+
+Weather branch: GTN(G_s, view) ∪ G_w(θ) rendered in one rasterisation, then the medium and lens effects,
+fit to the observed (degraded) photo with (1−λ)·L1 + λ·(1−SSIM) plus the weather's coverage prior.
+Clean branch: G_s alone against the clean reference (L1 and a perceptual loss) when references exist.
+Evaluation, renders and export use the clean branch only.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+
+from metegs.engine.metegs_config import MeteGSConfig
+from metegs.engine.trainer import Trainer
+from metegs.registry import registry
+from metegs.render import RenderSettings
+from metegs.weather.base import WeatherModel, WeatherScene
+from metegs.weather.compose import render_with_weather
+from metegs.weather.learnable import LearnableTransients
+
+PERCEPTUAL_CACHE_MB = 512
+"""Largest memory the clean references' perceptual features may take when cached for the whole run."""
+
+
+class MeteGSTrainer(Trainer):
+    """Scene Gaussians fit through the weather branch and, with clean references, the clean branch."""
+
+    config: MeteGSConfig
+
+    # --- setup -------------------------------------------------------------------------------------
+    def weather_kinds(self) -> set[str]:
+        if not self.config.weather_branch:
+            return {"rain", "fog"}
+        return {k for k in ("rain", "fog") if any(k in name for name in self.config.weather)}
+
+    def setup_method(self) -> None:
+        c = self.config
+        self.weather_models: list[WeatherModel] = self._build_weather() if c.weather_branch else []
+        if not c.weather_branch:
+            self.decide("weather", "off (ablation): the scene alone fits the degraded photos")
+        self.gtn = self._build_gtn()
+        has_clean = self.dataset.clean_images is not None
+        self.use_clean = has_clean and c.clean_supervision
+        if not has_clean:
+            self.decide("clean branch", "off: the scene has no clean references (blind mode)")
+        elif not c.clean_supervision:
+            self.decide("clean branch", "off: --clean-supervision False (blind mode)")
+        else:
+            self.decide("clean branch", f"on: L1 weight {c.weights.clean}")
+        self.perceptual = self._build_perceptual()
+        self._feature_cache: dict[int, list[dict[str, torch.Tensor]]] = {}
+        self._setup_densifiers()
+        self.method_optimizers = self._method_optimizers()
+
+    def _build_weather(self) -> list[WeatherModel]:
+        from metegs.weather.conditions import describe, scene_metres_per_unit
+
+        c, ds = self.config, self.dataset
+        theta = self.weather_theta(self.scene)
+        self.decide("conditions", describe(theta))
+        scene = WeatherScene(
+            cameras=ds.cameras,
+            up=torch.as_tensor(self.scene.up, dtype=torch.float32, device=self.device),
+            metres_per_unit=scene_metres_per_unit(c.conditions, self.scene.metric_scale),
+            images=ds.images,
+            seed=c.seed + 7919,  # never the seed a synthesised dataset used: the model must not know its streaks
+        )
+        models = []
+        for name in c.weather:
+            config = c.weather_config(name) or registry("weather").get(name)()
+            model = config.setup(theta=theta, scene=scene).to(self.device)
+            if not model.active:
+                self.decide(f"weather {name}", "off: the weather does not call for it")
+                continue
+            if getattr(model, "transient", False):
+                model = LearnableTransients(model, list(ds.train_indices), c.learnable_weather)
+                count = sum(len(v.means) for v in model.views.values()) / max(len(model.views), 1)
+                self.decide(f"weather {name}", f"on: {count:.0f} learnable Gaussians per training view")
+            else:
+                self.decide(f"weather {name}", "on")
+            models.append(model)
+        return models
+
+    def _build_gtn(self):
+        from metegs.models.gtn import GaussianTransformationNetwork
+
+        c = self.config
+        if not (c.gtn.enabled and c.weather_branch):
+            self.decide("gtn", "off" + ("" if c.weather_branch else ": no weather branch"))
+            return None
+        centre = self.dataset.cameras[self.dataset.train_indices].camera_to_worlds[:, :3, 3].mean(0)
+        gtn = GaussianTransformationNetwork(c.gtn, centre, self.extent).to(self.device)
+        if getattr(self.densifier, "reset_every", 0):
+            self.densifier.reset_every = 0
+            self.decide("opacity reset", "off while the GTN is active (as in Deblurring-3DGS)")
+        self.decide("gtn", f"on: scale/rotation growth in [1, {c.gtn.max_factor}]")
+        return gtn
+
+    def _build_perceptual(self):
+        c = self.config
+        if not self.use_clean or c.weights.perceptual <= 0:
+            why = "no clean references" if not self.use_clean else "weight 0"
+            self.decide("perceptual", f"off: {why}")
+            return None
+        from metegs.losses.perceptual import try_load_perceptual
+
+        loss, reason = try_load_perceptual(c.perceptual, self.device)
+        if loss is None:
+            self.decide("perceptual", f"off: {reason}")
+            if self.console is not None:
+                self.console.print(f"[yellow]warning:[/] perceptual loss switched off: {reason}")
+            return None
+        self.decide("perceptual", f"on: {loss.backbone_name} features, weight {c.weights.perceptual}")
+        return loss
+
+    def _setup_densifiers(self) -> None:
+        from metegs.densify.depth_prune import DepthAwarePruning
+        from metegs.densify.extra_points import ExtraPointCompensation
+
+        c = self.config
+        train_cams = self.dataset.cameras[self.dataset.train_indices]
+        if c.depth_prune:
+            self.densifier.prune_rule = DepthAwarePruning(c.depth_prune_options, train_cams).thresholds
+            self.decide("depth pruning", f"on ({c.depth_prune_options.depth_mode} depth)")
+        else:
+            self.decide("depth pruning", "off")
+        self.extra_points = None
+        if c.extra_points:
+            points = self.model.params["means"].detach().clone()
+            self.extra_points = ExtraPointCompensation(c.extra_points_options, c.max_steps, self.extent, points)
+            self.decide("extra points", f"on at step {round(c.extra_points_options.at * c.max_steps)}")
+        else:
+            self.decide("extra points", "off")
+
+    def _method_optimizers(self) -> dict[str, torch.optim.Optimizer]:
+        optimizers = {}
+        if self.gtn is not None:
+            optimizers["gtn"] = torch.optim.Adam(self.gtn.parameters(), lr=self.config.gtn.lr)
+        groups = []
+        for m in self.weather_models:
+            if isinstance(m, LearnableTransients):
+                groups += [g for g in m.param_groups() if g["params"]]
+            else:
+                params = [p for p in m.parameters() if p.requires_grad]
+                if params:
+                    groups.append({"params": params, "lr": self.config.weather_lr, "name": m.name})
+        if groups:
+            optimizers["weather"] = torch.optim.Adam(groups, eps=1e-15)
+        return optimizers
+
+    # --- one step ----------------------------------------------------------------------------------
+    def render_weather(self, index: int, background: torch.Tensor, training: bool):
+        """Weather-branch render of view ``index`` (GTN only while training) -> WeatherRender."""
+        settings = RenderSettings(background=background, sh_degree=self.model.active_sh_degree)
+        camera = self.dataset.cameras[index]
+        scene = self.model.activated()
+        if training and self.gtn is not None:
+            scene = self.gtn(scene, camera.camera_to_worlds[0, :3, 3])
+        return render_with_weather(self.rasterizer, scene, self.weather_models, index, camera, settings)
+
+    def train_step(self, index: int) -> dict[str, float]:
+        c = self.config
+        self.schedule_step()
+        bg = self.background(training=True)
+        target = self.target(index, bg)
+        stats: dict[str, float] = {}
+        rendered = []
+        weather = self.render_weather(index, bg, training=True)
+        loss = c.weights.photo * self.loss_fn(weather.rgb, target)
+        rendered.append((weather.out, weather.num_scene))
+        for m in self.weather_models:
+            prior = m.prior(index) if isinstance(m, LearnableTransients) else None
+            if prior is not None:
+                loss = loss + prior
+        if self.use_clean and (c.weights.clean > 0 or self.perceptual is not None):
+            settings = RenderSettings(background=bg, sh_degree=self.model.active_sh_degree)
+            clean = self.rasterizer.render(self.model.activated(), self.dataset.cameras[index], settings)
+            reference = self.reference(index, bg)
+            if c.weights.clean > 0:
+                loss = loss + c.weights.clean * (clean.rgb - reference).abs().mean()
+            if self.perceptual is not None:
+                loss = loss + c.weights.perceptual * self.perceptual(
+                    clean.rgb, target_features=self._reference_features(index, reference)
+                )
+            rendered.append((clean, None))
+        loss.backward()
+        for out, num_scene in rendered:
+            self.densifier.update_stats(self.model, out, num_scene)
+        for opt in (*self.optimizers.values(), *self.method_optimizers.values()):
+            opt.step()
+            opt.zero_grad(set_to_none=True)
+        changes = self.densifier.step(self.model, self.optimizers, self.step)
+        if self.extra_points is not None:
+            changes.update(self.extra_points.step(self.model, self.optimizers, self.step))
+        with torch.no_grad():
+            mse = float(((weather.rgb.clamp(0, 1) - target) ** 2).mean())
+        stats.update({"loss": float(loss.detach()), "psnr": -10 * torch.log10(torch.tensor(max(mse, 1e-10))).item()})
+        return {**stats, **changes}
+
+    def _reference_features(self, index: int, reference: torch.Tensor) -> list[dict[str, torch.Tensor]]:
+        """Perceptual features of a view's clean reference, kept while they fit in `PERCEPTUAL_CACHE_MB`
+        (references are fixed unless masks composite them over a random background)."""
+        cached = self._feature_cache.get(index)
+        if cached is not None:
+            return cached
+        features = self.perceptual.target_features(reference)
+        size_mb = sum(f.numel() * f.element_size() for d in features for f in d.values()) / 2**20
+        fixed = self.dataset.masks is None or self.config.background != "random"
+        if fixed and size_mb * len(self.dataset.train_indices) <= PERCEPTUAL_CACHE_MB:
+            self._feature_cache[index] = features
+        return features
+
+    # --- outputs -----------------------------------------------------------------------------------
+    def save_renders(self, indices: list[int], split: str) -> None:
+        """Clean renders and, per view, [clean render | weather render | clean reference | photo] side by side."""
+        from metegs.data.images import save_image
+
+        super().save_renders(indices, split)
+        folder = self.run_dir / "renders" / split
+        bg = self.background(training=False)
+        with torch.no_grad():
+            for i in indices:
+                name = Path(self.dataset.names[i]).stem
+                clean = self.render(i, background=bg).rgb.clamp(0, 1)
+                weather = self.render_weather(i, bg, training=False).rgb.clamp(0, 1)
+                save_image(folder / f"{name}_weather.png", weather)
+                row = [clean, weather, self.reference(i, bg), self.target(i, bg)]
+                save_image(folder / f"{name}_compare.png", torch.cat(row, dim=1))
+
+    # --- checkpoints -------------------------------------------------------------------------------
+    def extra_state(self) -> dict:
+        return {
+            "gtn": None if self.gtn is None else self.gtn.state_dict(),
+            "weather": {m.name: m.state_dict() for m in self.weather_models},
+            "method_optimizers": {k: o.state_dict() for k, o in self.method_optimizers.items()},
+            "extra_points": None if self.extra_points is None else self.extra_points.state_dict(),
+        }
+
+    def load_extra_state(self, ckpt: dict) -> None:
+        if self.gtn is not None and ckpt.get("gtn") is not None:
+            self.gtn.load_state_dict(ckpt["gtn"])
+        for m in self.weather_models:
+            state = ckpt.get("weather", {}).get(m.name)
+            if state is not None:
+                m.load_state_dict(state)
+        for k, o in self.method_optimizers.items():
+            state = ckpt.get("method_optimizers", {}).get(k)
+            if state is not None:
+                o.load_state_dict(state)
+        if self.extra_points is not None and ckpt.get("extra_points") is not None:
+            self.extra_points.load_state_dict(ckpt["extra_points"])

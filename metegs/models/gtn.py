@@ -1,0 +1,114 @@
+"""Gaussian Transformation Network (after Deblurring-3DGS's GTnet): per-view, bounded growth of the scene
+Gaussians that explains blur in the degraded photos without putting it into the scene.
+
+Inputs (all detached, 91-D): γ(x) of the normalised position with 3 frequencies (21), γ(c) of the
+normalised camera centre with 10 frequencies (63), log-scale (3) and unit quaternion (4). An MLP of
+three 64-wide ReLU layers gives heads δs [3], δr [4] in [1, max_factor]: one-sided (Gaussians can only
+widen, by at most 10 % by default), as in the reference. Used in the weather branch during training
+only; clean renders, evaluation and export never see it.
+
+The reference bounds the heads with clamp(0.01·raw + 0.99, 1, 1.1). With the small initial head
+weights raw is near 0, so almost every factor sits on the lower clamp, whose gradient is zero: the
+network barely learns (tests/models/test_gtn.py shows it). Here δ = 1 + (max − 1)·sigmoid(raw + b),
+with b set so that δ starts at 1 + `init_growth`·(max − 1): the same range, gradients everywhere.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from metegs.errors import ConfigError
+from metegs.gaussians.model import GaussianSet
+
+
+@dataclass
+class GTNConfig:
+    """The Gaussian Transformation Network of the weather branch."""
+
+    enabled: bool = True
+    """Use the GTN in the weather branch (off: the weather branch renders the scene Gaussians as they are)."""
+    position_frequencies: int = 3
+    """Frequencies of the positional encoding of the Gaussian position."""
+    view_frequencies: int = 10
+    """Frequencies of the positional encoding of the camera centre (the view)."""
+    width: int = 64
+    """Width of the hidden layers."""
+    layers: int = 3
+    """Number of hidden ReLU layers."""
+    init_growth: float = 0.01
+    """Initial growth as a fraction of the allowed range: δ = 1 + (max-factor − 1)·sigmoid(raw + logit(this))."""
+    max_factor: float = 1.1
+    """Largest growth factor of scale and rotation components."""
+    lr: float = 1e-3
+    """Learning rate of the network."""
+
+
+def positional_encoding(x: torch.Tensor, frequencies: int) -> torch.Tensor:
+    """[..., D] -> [..., D·(1 + 2F)]: x, sin(2^k x), cos(2^k x) for k < F."""
+    if frequencies <= 0:
+        return x
+    scales = 2.0 ** torch.arange(frequencies, dtype=x.dtype, device=x.device)
+    angles = (x[..., None, :] * scales[:, None]).flatten(-2)
+    return torch.cat([x, torch.sin(angles), torch.cos(angles)], dim=-1)
+
+
+class GaussianTransformationNetwork(nn.Module):
+    """Bounded multiplicative corrections of scales and rotations for one view."""
+
+    def __init__(self, config: GTNConfig, centre: torch.Tensor, extent: float):
+        super().__init__()
+        if not 0.0 < config.init_growth < 1.0 or not config.max_factor > 1.0:
+            raise ConfigError(f"GTN needs 0 < init-growth < 1 and max-factor > 1, got {config.init_growth}, {config.max_factor}")
+        self.config = config
+        self.register_buffer("centre", centre.detach().float().reshape(3).clone())
+        self.extent = max(float(extent), 1e-6)
+        c = config
+        in_dim = 3 * (1 + 2 * c.position_frequencies) + 3 * (1 + 2 * c.view_frequencies) + 3 + 4
+        layers: list[nn.Module] = []
+        dim = in_dim
+        for _ in range(c.layers):
+            layers += [nn.Linear(dim, c.width), nn.ReLU()]
+            dim = c.width
+        self.trunk = nn.Sequential(*layers)
+        self.head_scale = nn.Linear(dim, 3)
+        self.head_rot = nn.Linear(dim, 4)
+        for m in self.modules():
+            if isinstance(m, nn.Linear):
+                gain = 0.1 if m.out_features <= 4 else 1.0
+                nn.init.xavier_normal_(m.weight, gain=gain)
+                nn.init.zeros_(m.bias)
+
+    def factors(self, means: torch.Tensor, scales: torch.Tensor, quats: torch.Tensor, cam_centre: torch.Tensor):
+        """Growth factors. means, scales [N, 3], quats [N, 4], cam_centre [3] -> (δs [N, 3], δr [N, 4]) in [1, max]."""
+        c = self.config
+        x = ((means.detach() - self.centre) / self.extent).float()
+        v = ((cam_centre.detach().reshape(1, 3) - self.centre) / self.extent).float().expand(len(x), 3)
+        q = quats.detach().float()
+        q = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        features = torch.cat(
+            [
+                positional_encoding(x, c.position_frequencies),
+                positional_encoding(v, c.view_frequencies),
+                torch.log(scales.detach().float().clamp_min(1e-12)),
+                q,
+            ],
+            dim=-1,
+        )
+        h = self.trunk(features)
+        bias = math.log(c.init_growth / (1.0 - c.init_growth))
+        span = c.max_factor - 1.0
+        ds = 1.0 + span * torch.sigmoid(self.head_scale(h) + bias)
+        dr = 1.0 + span * torch.sigmoid(self.head_rot(h) + bias)
+        return ds, dr
+
+    def forward(self, gaussians: GaussianSet, cam_centre: torch.Tensor) -> GaussianSet:
+        """The scene Gaussians as the degraded view sees them (means, opacity and colour unchanged)."""
+        ds, dr = self.factors(gaussians.means, gaussians.scales, gaussians.quats, cam_centre)
+        return GaussianSet(
+            gaussians.means, gaussians.quats * dr.to(gaussians.quats), gaussians.scales * ds.to(gaussians.scales),
+            gaussians.opacities, gaussians.sh,
+        )
