@@ -34,6 +34,8 @@ class MeteGSConfig(TrainConfig):
     """MeteGS: scene + weather Gaussians fit the degraded photos; the scene alone is held to the clean domain."""
 
     _target: type = field(default_factory=lambda: _trainer_class(), repr=False)
+    max_steps: int = 2000
+    """Number of training steps (one view per step; two renders each: weather and clean branch)."""
     degrade: Literal["off", "auto", "rain", "fog", "rain+fog"] = "auto"
     """Degrade a clean scene in memory before training, with the weather of `conditions` (the clean images become
     the references): auto = the method's weather kinds on the built-in synthetic scene, off for scenes from files."""
@@ -55,7 +57,7 @@ class MeteGSConfig(TrainConfig):
     """Depth-aware pruning options."""
     extra_points: bool = True
     """Extra-point compensation in sparse regions, once early in the run."""
-    extra_points_options: ExtraPointsConfig = field(default_factory=ExtraPointsConfig)
+    extra_points_options: ExtraPointsConfig = field(default_factory=lambda: ExtraPointsConfig(max_relative=0.25))
     """Extra-point compensation options."""
     learnable_weather: LearnableWeatherConfig = field(default_factory=LearnableWeatherConfig)
     """Bounds, learning rates and coverage prior of the per-view weather Gaussians."""

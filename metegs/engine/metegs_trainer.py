@@ -166,10 +166,8 @@ class MeteGSTrainer(Trainer):
         bg = self.background(training=True)
         target = self.target(index, bg)
         stats: dict[str, float] = {}
-        rendered = []
         weather = self.render_weather(index, bg, training=True)
         loss = c.weights.photo * self.loss_fn(weather.rgb, target)
-        rendered.append((weather.out, weather.num_scene))
         for m in self.weather_models:
             prior = m.prior(index) if isinstance(m, LearnableTransients) else None
             if prior is not None:
@@ -184,10 +182,10 @@ class MeteGSTrainer(Trainer):
                 loss = loss + c.weights.perceptual * self.perceptual(
                     clean.rgb, target_features=self._reference_features(index, reference)
                 )
-            rendered.append((clean, None))
         loss.backward()
-        for out, num_scene in rendered:
-            self.densifier.update_stats(self.model, out, num_scene)
+        # densification follows the photo fit only: weather Gaussians excluded, the clean branch's small
+        # reference terms do not count twice
+        self.densifier.update_stats(self.model, weather.out, weather.num_scene)
         for opt in (*self.optimizers.values(), *self.method_optimizers.values()):
             opt.step()
             opt.zero_grad(set_to_none=True)

@@ -11,7 +11,10 @@ import torch
 
 from metegs.cameras import Cameras
 from metegs.errors import ConfigError
-from metegs.meteo import CameraSpec, Theta, theta_from_record, theta_from_values
+from metegs.meteo import CameraSpec, Theta
+
+DEFAULT_EXPOSURE_S = 1.0 / 60.0
+"""Exposure time assumed for cameras that do not say theirs, s."""
 
 
 @dataclass
@@ -27,13 +30,13 @@ class ConditionsConfig:
     agg: Literal["mean", "max", "min"] = "max"
     """Aggregation of the rate over the window."""
     precip_mm_h: float | None = None
-    """Precipitation rate, mm/h (overrides the record; with it, no record is read)."""
+    """Explicit precipitation rate, mm/h (instead of a record)."""
     visibility_m: float | None = None
-    """Visibility, m (overrides the record's; None keeps it)."""
+    """Visibility, m: explicit, or replacing the record's (records such as PRSA have none)."""
     wind_speed_m_s: float | None = None
-    """Wind speed, m/s (overrides the record's)."""
+    """Explicit wind speed, m/s (with --conditions.precip-mm-h)."""
     wind_dir_deg: float | None = None
-    """Direction the wind blows from, degrees clockwise from north (overrides the record's)."""
+    """Explicit direction the wind blows from, degrees clockwise from north (with --conditions.precip-mm-h)."""
     exposure_s: float | None = None
     """Exposure time, s; None: the cameras' (EXIF), else 1/60 s."""
     metres_per_unit: float | None = None
@@ -43,18 +46,30 @@ class ConditionsConfig:
     not the training resolution); 0: the dataset's stored width."""
 
 
-def camera_spec(cameras: Cameras, config: ConditionsConfig, far_max_m: float = 10.0) -> CameraSpec:
-    """The camera θ is mapped for: the first view's field of view at the capture resolution."""
+def camera_spec(
+    cameras: Cameras,
+    exposure_s: float | None = None,
+    capture_width_px: int = 1920,
+    far_max_m: float = 10.0,
+    far_m: float | None = None,
+) -> CameraSpec:
+    """The camera θ is mapped for: the first view's field of view at the capture resolution, its exposure
+    (``exposure_s``, else the cameras', else 1/60 s), streaks no farther than ``far_max_m`` (or at ``far_m``)."""
     width, height, fx, fy = (float(v[0]) for v in (cameras.width, cameras.height, cameras.fx, cameras.fy))
-    scale = config.capture_width_px / width if config.capture_width_px > 0 else 1.0
-    exposure = config.exposure_s
-    if exposure is None and cameras.exposure_time_s is not None:
-        exposure = float(cameras.exposure_time_s[0])
-    exposure = exposure or 1.0 / 60.0
-    if not (math.isfinite(exposure) and exposure > 0):
-        raise ConfigError(f"--conditions.exposure-s must be a positive number of seconds, got {exposure}")
+    scale = capture_width_px / width if capture_width_px > 0 else 1.0
+    if exposure_s is None and cameras.exposure_time_s is not None:
+        exposure_s = float(cameras.exposure_time_s[0])
+    exposure_s = DEFAULT_EXPOSURE_S if exposure_s is None else exposure_s
+    if not (math.isfinite(exposure_s) and exposure_s > 0):
+        raise ConfigError(f"exposure time must be a positive number of seconds, got {exposure_s}")
     return CameraSpec.from_intrinsics(
-        fx * scale, round(width * scale), round(height * scale), fy=fy * scale, exposure_s=exposure, far_max_m=far_max_m
+        fx * scale,
+        round(width * scale),
+        round(height * scale),
+        fy=fy * scale,
+        exposure_s=exposure_s,
+        far_max_m=max(far_max_m, 0.5),
+        far_m=far_m,
     )
 
 
@@ -66,31 +81,35 @@ def scene_depth_m(cameras: Cameras, metres_per_unit: float) -> float:
     return float((centres - centres.mean(0)).norm(dim=1).mean()) * metres_per_unit
 
 
-def theta_for_cameras(config: ConditionsConfig, cameras: Cameras, metres_per_unit: float) -> Theta:
-    """θ of the configured weather for a scene's cameras (streaks no farther than the scene itself)."""
+def theta_camera(
+    cameras: Cameras,
+    metres_per_unit: float,
+    exposure_s: float | None = None,
+    capture_width_px: int = 1920,
+    far_m: float | None = None,
+) -> CameraSpec:
+    """`camera_spec` with streaks capped at the scene's own depth (at most 10 m)."""
     far_max = max(1.0, min(10.0, scene_depth_m(cameras, metres_per_unit)))
-    spec = camera_spec(cameras, config, far_max_m=far_max)
+    return camera_spec(cameras, exposure_s, capture_width_px, far_max_m=far_max, far_m=far_m)
+
+
+def theta_for_cameras(config: ConditionsConfig, cameras: Cameras, metres_per_unit: float) -> Theta:
+    """θ of the configured weather for a scene's cameras: explicit values, else the record at its time."""
+    from metegs.synth.conditions import plan_from_record, plan_from_values
+
+    spec = theta_camera(cameras, metres_per_unit, config.exposure_s, config.capture_width_px)
     if config.precip_mm_h is not None:
-        return theta_from_values(
-            config.precip_mm_h,
-            config.visibility_m,
-            config.wind_speed_m_s or 0.0,
-            config.wind_dir_deg,
-            camera=spec,
+        plan = plan_from_values(
+            1, spec, config.precip_mm_h, config.visibility_m, config.wind_speed_m_s or 0.0, config.wind_dir_deg
         )
-    theta = theta_from_record(config.record, config.time, config.window, config.agg, camera=spec)
-    c = theta.conditions
-    overrides = (config.visibility_m, config.wind_speed_m_s, config.wind_dir_deg)
-    if all(v is None for v in overrides):
-        return theta
-    return theta_from_values(
-        c.precip_mm_per_h,
-        config.visibility_m if config.visibility_m is not None else c.visibility_m,
-        config.wind_speed_m_s if config.wind_speed_m_s is not None else (c.wind_speed_m_per_s or 0.0),
-        config.wind_dir_deg if config.wind_dir_deg is not None else c.wind_dir_deg_from,
-        kind="drizzle" if c.precip_kind == "drizzle" else "rain",
-        camera=spec,
-    )
+    else:
+        if config.wind_speed_m_s is not None or config.wind_dir_deg is not None:
+            raise ConfigError("--conditions.wind-* go with --conditions.precip-mm-h (explicit values), not a record")
+        times = [config.time] if config.time else None
+        plan = plan_from_record(
+            1, spec, config.record, times, window=config.window, agg=config.agg, visibility_m=config.visibility_m
+        )
+    return plan.thetas[0]
 
 
 def scene_metres_per_unit(config: ConditionsConfig, metric_scale: float | None) -> float:

@@ -1,0 +1,219 @@
+"""Write a degraded copy of a dataset in its own format, with the clean images alongside, atomically.
+
+Layouts (the clean reference of ``<folder>/<file>`` is ``<folder>_clean/<file>``, see
+`metegs.data.parsers.clean`, so that every parser exposes it as ``SceneData.clean_image_paths``):
+
+- ``llff``: ``poses_bounds.npy``, the image folder the parser read (e.g. ``images_8/``) with the degraded
+  images under their own names, its masks folder, the top-level files (licence, readme) copied;
+- ``nerfstudio`` / ``blender``: the transforms file(s) and point cloud copied, degraded images at the
+  frames' paths;
+- ``colmap``: the ``sparse/`` model copied, degraded images in ``images/``;
+- the synthetic scene (in memory): a nerfstudio dataset, ``transforms.json`` (its split, the points in
+  ``points.ply``), ``images/view_NNN.png``, exact depth maps ``depths/view_NNN.npy`` (float32 z-depth, m).
+
+Everything is built in a hidden temp folder next to the output and renamed into place at the end: an
+interrupted run leaves no half-written dataset.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path, PurePosixPath
+
+import cv2
+import numpy as np
+
+from metegs.cameras import opencv_to_opengl
+from metegs.data.parsers.clean import clean_relative_path
+from metegs.data.scene import SceneData
+from metegs.errors import ConfigError, DataError
+
+JPEG_QUALITY = 95
+"""Quality of degraded JPEG images (the format of the source is kept)."""
+
+
+@contextmanager
+def staged_output(output: Path, overwrite: bool = False) -> Iterator[Path]:
+    """Yield a temp folder next to ``output``; on success it replaces ``output`` by renames, on error it is removed."""
+    output = Path(output)
+    if output.exists() and not overwrite:
+        raise ConfigError(f"{output} exists; choose another --output or pass --overwrite")
+    output.parent.mkdir(parents=True, exist_ok=True)
+    tmp = output.parent / f".{output.name}.partial-{os.getpid()}"
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    tmp.mkdir()
+    try:
+        yield tmp
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    old = None
+    if output.exists():
+        old = output.parent / f".{output.name}.old-{os.getpid()}"
+        os.replace(output, old)
+    os.replace(tmp, output)
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True) if old.is_dir() else old.unlink(missing_ok=True)
+
+
+def encode_image(image: np.ndarray, suffix: str) -> bytes:
+    """8-bit encoding of a float RGB image [H, W, 3] in [0, 1] (PNG, or JPEG at ``JPEG_QUALITY``)."""
+    arr = (np.clip(np.asarray(image, dtype=np.float32), 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    suffix = suffix.lower() or ".png"
+    params = [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY] if suffix in (".jpg", ".jpeg") else []
+    ok, buf = cv2.imencode(suffix, cv2.cvtColor(arr, cv2.COLOR_RGB2BGR), params)
+    if not ok:
+        raise DataError(None, f"cannot encode an image as {suffix}")
+    return buf.tobytes()
+
+
+def output_format(scene: SceneData) -> str:
+    """The format a degraded copy of ``scene`` is written in."""
+    return "nerfstudio" if scene.parser in ("synthetic", "") or scene.source is None else scene.parser
+
+
+class DatasetWriter:
+    """Writes the views and the metadata of a degraded copy of ``scene`` into ``root`` (the staging folder)."""
+
+    def __init__(self, scene: SceneData, root: Path):
+        self.scene, self.root = scene, Path(root)
+        self.format = output_format(scene)
+        if self.format not in ("llff", "nerfstudio", "blender", "colmap"):
+            raise ConfigError(
+                f"cannot write a degraded copy of a {self.format!r} dataset (llff, nerfstudio, blender, colmap)"
+            )
+        self.source_root = self._source_root()
+        self.image_rel = [self._image_rel(i) for i in range(len(scene))]
+        """Path of each view's image in the output, relative to it."""
+        self.clean_rel = [str(clean_relative_path(r)) for r in self.image_rel]
+
+    # --- where things go ----------------------------------------------------------------------------------
+    def _source_root(self) -> Path | None:
+        src = self.scene.source
+        if src is None:
+            return None
+        src = Path(src)
+        return src.parent if src.is_file() else src
+
+    def _image_rel(self, i: int) -> str:
+        if self.scene.source is None:  # in-memory scene
+            return f"images/{Path(self.scene.names[i]).stem}.png"
+        if self.scene.image_paths is None:
+            raise DataError(self.scene.source, "the scene has no image files to mirror")
+        p = Path(self.scene.image_paths[i])
+        try:
+            rel = p.relative_to(self.source_root)
+        except ValueError:
+            raise DataError(p, f"image lies outside the scene folder {self.source_root}; cannot mirror it") from None
+        if rel.parts[0].startswith("."):
+            raise DataError(
+                p,
+                "image is a cached copy (e.g. undistorted COLMAP view); undistort the scene first "
+                "(COLMAP image_undistorter) and degrade that",
+            )
+        return PurePosixPath(rel.as_posix()).as_posix()
+
+    # --- writing ------------------------------------------------------------------------------------------
+    def write_view(self, i: int, degraded: np.ndarray, clean: np.ndarray) -> None:
+        """The degraded image of view ``i`` at its path and its clean reference next to it (the source file
+        itself when the view was read from one)."""
+        suffix = Path(self.image_rel[i]).suffix
+        for rel, image in ((self.image_rel[i], degraded), (self.clean_rel[i], clean)):
+            path = self.root / rel
+            path.parent.mkdir(parents=True, exist_ok=True)
+            if image is clean and self.scene.image_paths is not None and Path(self.scene.image_paths[i]).is_file():
+                shutil.copyfile(self.scene.image_paths[i], path)  # the original file, not a re-encoding
+            else:
+                path.write_bytes(encode_image(image, suffix))
+
+    def finish(self, depths: list[np.ndarray] | None = None) -> None:
+        """Format metadata (poses, transforms, model) and companion files."""
+        if self.scene.source is None:
+            self._write_nerfstudio_from_memory(depths)
+            return
+        src = self.source_root
+        for item in sorted(src.iterdir()):  # top-level files: poses, transforms, licence, readme, ...
+            if item.is_file() and not item.name.startswith("."):
+                shutil.copy2(item, self.root / item.name)
+        if self.format == "llff":
+            image_dir = Path(self.image_rel[0]).parts[0]
+            masks = src / image_dir.replace("images", "masks", 1)
+            if masks.is_dir():
+                shutil.copytree(masks, self.root / masks.name)
+        elif self.format == "colmap":
+            for name in ("sparse",):
+                if (src / name).is_dir():
+                    shutil.copytree(src / name, self.root / name)
+        elif self.format == "nerfstudio":
+            meta = json.loads(
+                (self.scene.source if Path(self.scene.source).is_file() else src / "transforms.json").read_text()
+            )
+            ply = meta.get("ply_file_path")
+            if ply and (src / ply).is_file() and not (self.root / ply).exists():
+                (self.root / ply).parent.mkdir(parents=True, exist_ok=True)
+                shutil.copy2(src / ply, self.root / ply)
+
+    def _write_nerfstudio_from_memory(self, depths: list[np.ndarray] | None) -> None:
+        scene = self.scene
+        cams = scene.cameras
+        c2w_gl = opencv_to_opengl(cams.camera_to_worlds.double()).numpy()
+        frames = []
+        for i in range(len(scene)):
+            frame = {
+                "file_path": self.image_rel[i],
+                "transform_matrix": [[float(x) for x in row] for row in c2w_gl[i]],
+                "fl_x": float(cams.fx[i]),
+                "fl_y": float(cams.fy[i]),
+                "cx": float(cams.cx[i]),
+                "cy": float(cams.cy[i]),
+                "w": int(cams.width[i]),
+                "h": int(cams.height[i]),
+            }
+            if depths is not None:
+                rel = f"depths/{Path(self.image_rel[i]).stem}.npy"
+                path = self.root / rel
+                path.parent.mkdir(parents=True, exist_ok=True)
+                np.save(path, np.asarray(depths[i], dtype=np.float32), allow_pickle=False)
+                frame["depth_file_path"] = rel
+            frames.append(frame)
+        meta = {
+            "camera_model": "PINHOLE",
+            "frames": frames,
+            "train_filenames": [self.image_rel[i] for i in scene.train_indices],
+            "test_filenames": [self.image_rel[i] for i in scene.test_indices],
+            "metegs": {
+                "source": "synthetic scene" if scene.parser == "synthetic" else scene.parser or "in-memory scene",
+                "metric_scale": scene.metric_scale,
+                "up": [float(x) for x in np.asarray(scene.up).reshape(-1)],
+                "exposure_time_s": None
+                if cams.exposure_time_s is None
+                else [float(x) for x in cams.exposure_time_s.tolist()],
+                "image_space": scene.image_space,
+            },
+        }
+        if scene.points is not None and len(scene.points):
+            write_ply_points(self.root / "points.ply", scene.points, scene.point_colors)
+            meta["ply_file_path"] = "points.ply"
+        (self.root / "transforms.json").write_text(json.dumps(meta, indent=1) + "\n")
+
+
+def write_ply_points(path: Path, points: np.ndarray, colors: np.ndarray | None) -> None:
+    """Binary little-endian PLY of points [P, 3] (and colours [P, 3] in [0, 1] as uchar)."""
+    pts = np.asarray(points, dtype=np.float32).reshape(-1, 3)
+    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
+    if colors is not None:
+        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    data = np.empty(len(pts), dtype=np.dtype(fields))
+    data["x"], data["y"], data["z"] = pts[:, 0], pts[:, 1], pts[:, 2]
+    if colors is not None:
+        rgb = (np.clip(np.asarray(colors, dtype=np.float32).reshape(-1, 3), 0, 1) * 255 + 0.5).astype(np.uint8)
+        data["red"], data["green"], data["blue"] = rgb[:, 0], rgb[:, 1], rgb[:, 2]
+    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(pts)}"]
+    header += [f"property {'float' if t == '<f4' else 'uchar'} {n}" for n, t in fields]
+    header.append("end_header")
+    path.write_bytes(("\n".join(header) + "\n").encode("ascii") + data.tobytes())
