@@ -31,6 +31,22 @@ def method_configs() -> dict[str, tuple[str, Any]]:
     return out
 
 
+COMPONENT_KINDS = ("weather", "parser", "rasterizer", "densifier", "loss", "meteo_reader")
+"""Registry kinds listed by ``metegs-train --help`` (methods are the subcommands)."""
+
+
+def components_help() -> str:
+    """One line per registry kind: its registered names, plugins marked with the package that added them."""
+    from metegs.registry import failed_plugins
+
+    lines = ["Registered components (plugins in brackets):"]
+    for kind in COMPONENT_KINDS:
+        names = [e.name if e.source == "metegs" else f"{e.name} [{e.source}]" for e in registry(kind).entries()]
+        lines.append(f"  {kind}: {', '.join(names)}")
+    lines += [f"  plugin {name!r} failed to load: {why}" for name, why in failed_plugins.items()]
+    return "\n".join(lines)
+
+
 def pop_config_flag(argv: list[str]) -> tuple[list[str], Path | None]:
     """Remove ``--config PATH`` / ``--config=PATH`` from argv; return the rest and the path."""
     rest, path = [], None
@@ -77,7 +93,7 @@ def parse_args(argv: list[str]) -> Any:
         args=argv,
         prog="metegs-train",
         config=(tyro.conf.SuppressFixed,),
-        description="Train a metegs method. Run `metegs-train <method> --help` for its flags.",
+        description="Train a metegs method. Run `metegs-train <method> --help` for its flags.\n\n" + components_help(),
     )
 
 

@@ -66,3 +66,19 @@ def test_bad_config_file_names_it(tmp_path):
 def test_pop_config_flag_forms():
     assert pop_config_flag(["a", "--config", "x.yml", "b"]) == (["a", "b"], Path("x.yml"))
     assert pop_config_flag(["--config=y.yml"]) == ([], Path("y.yml"))
+
+
+def test_help_lists_every_component_kind_and_marks_plugins():
+    from metegs.cli.train import COMPONENT_KINDS, components_help
+    from metegs.registry import registry
+
+    text = components_help()
+    for kind in COMPONENT_KINDS:
+        assert f"  {kind}: " in text
+    assert "rain-streaks" in text and "rain-streaks [" not in text  # built-ins carry no mark
+    reg = registry("weather")
+    reg.register("test-hail", object, description="test only", source="metegs-hail")  # as a plugin would
+    try:
+        assert "test-hail [metegs-hail]" in components_help()
+    finally:
+        reg.unregister("test-hail")
