@@ -14,6 +14,7 @@ from metegs.registry import PluginWarning, Registry, registry
 @pytest.fixture
 def fresh_plugins(monkeypatch):
     """Rediscover plugins with fake entry points; restore the registries afterwards."""
+    reg.ensure_plugins_loaded()  # the built-ins register once per process: have them in what is restored
     saved = {k: dict(r._entries) for k, r in reg._REGISTRIES.items()}
     monkeypatch.setitem(reg._plugins_state, "loaded", False)
     monkeypatch.setattr(reg, "failed_plugins", {})
