@@ -46,9 +46,12 @@ def main(args: EvalArgs) -> dict:
     if not idx:
         raise MetegsError(f"{args.run_dir}: the scene has no {args.split} views")
     model, reason = try_load_lpips(args.lpips_net, device=trainer.device)
-    m = evaluate_images(trainer.render_views(idx), [ds.images[i] for i in idx], lpips_model=model, lpips_reason=reason)
+    bg = trainer.background(training=False)
+    references = [trainer.reference(i, bg) for i in idx]  # clean references when the scene has them
+    m = evaluate_images(trainer.render_views(idx), references, lpips_model=model, lpips_reason=reason)
     m.update(
         split=args.split,
+        reference="clean" if ds.clean_images is not None else "photo",
         num_gaussians=len(trainer.model),
         source=str(args.ply or args.checkpoint or "latest checkpoint"),
     )

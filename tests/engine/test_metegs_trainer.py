@@ -108,3 +108,12 @@ def test_clear_weather_builds_no_weather_and_blind_mode_skips_the_clean_branch(t
     assert trainer.perceptual is None and not trainer.use_clean
     assert "off" in trainer.decisions["weather rain-streaks"] and "off" in trainer.decisions["weather fog-analytic"]
     trainer.train()
+
+
+def test_eval_of_the_saved_run_reproduces_its_clean_view_metrics(trained):
+    from metegs.cli.eval import EvalArgs, main
+
+    trainer, metrics = trained
+    m = main(EvalArgs(run_dir=trainer.run_dir, output=trainer.run_dir / "eval-test.json"))
+    assert m["reference"] == "clean"
+    assert m["psnr"] == pytest.approx(metrics["psnr"], abs=1e-3)
