@@ -86,19 +86,21 @@ class GaussianTransformationNetwork(nn.Module):
         """Growth factors. means, scales [N, 3], quats [N, 4], cam_centre [3] -> (δs [N, 3], δr [N, 4]) in [1, max]."""
         c = self.config
         x = ((means.detach() - self.centre) / self.extent).float()
-        v = ((cam_centre.detach().reshape(1, 3) - self.centre) / self.extent).float().expand(len(x), 3)
+        v = ((cam_centre.detach().reshape(1, 3) - self.centre) / self.extent).float()
         q = quats.detach().float()
         q = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-        features = torch.cat(
-            [
-                positional_encoding(x, c.position_frequencies),
-                positional_encoding(v, c.view_frequencies),
-                torch.log(scales.detach().float().clamp_min(1e-12)),
-                q,
-            ],
-            dim=-1,
-        )
-        h = self.trunk(features)
+        pe_x = positional_encoding(x, c.position_frequencies)
+        pe_v = positional_encoding(v, c.view_frequencies)
+        per_gaussian = torch.cat([pe_x, torch.log(scales.detach().float().clamp_min(1e-12)), q], dim=-1)
+        # The first layer on [γ(x), γ(c), s, q]: γ(c) is the same for every Gaussian of the view, so its
+        # product with the weights is one bias vector instead of an [N, 63] block.
+        first = self.trunk[0]
+        nx = pe_x.shape[1]
+        w = first.weight
+        w_view = w[:, nx : nx + pe_v.shape[1]]
+        w_rest = torch.cat([w[:, :nx], w[:, nx + pe_v.shape[1] :]], dim=1)
+        h = torch.nn.functional.linear(per_gaussian, w_rest, first.bias + pe_v[0] @ w_view.T)
+        h = self.trunk[1:](h)
         bias = math.log(c.init_growth / (1.0 - c.init_growth))
         span = c.max_factor - 1.0
         ds = 1.0 + span * torch.sigmoid(self.head_scale(h) + bias)

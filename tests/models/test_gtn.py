@@ -94,3 +94,22 @@ def test_the_network_learns_to_widen_where_the_photo_asks():
     end = net(g, cam).scales.mean().item()
     assert end > start * 1.03
     assert torch.allclose(net(g, cam).scales, g.scales * 1.08, rtol=0.02)
+
+
+def test_factorised_first_layer_equals_the_plain_91d_mlp():
+    torch.manual_seed(1)
+    net = GaussianTransformationNetwork(GTNConfig(), torch.tensor([0.5, -1.0, 2.0]), 3.0)
+    with torch.no_grad():
+        for p in net.parameters():
+            p.normal_(0, 0.3)
+    g = _gaussians(64)
+    cam = torch.tensor([4.0, 1.0, -2.0])
+    ds, dr = net.factors(g.means, g.scales, g.quats, cam)
+    x = (g.means - net.centre) / net.extent
+    v = ((cam - net.centre) / net.extent).reshape(1, 3).expand(64, 3)
+    q = g.quats / g.quats.norm(dim=-1, keepdim=True)
+    feats = torch.cat([positional_encoding(x, 3), positional_encoding(v, 10), torch.log(g.scales), q], -1)
+    h = net.trunk(feats)
+    b = math.log(0.01 / 0.99)
+    assert torch.allclose(ds, 1 + 0.1 * torch.sigmoid(net.head_scale(h) + b), atol=1e-6)
+    assert torch.allclose(dr, 1 + 0.1 * torch.sigmoid(net.head_rot(h) + b), atol=1e-6)
