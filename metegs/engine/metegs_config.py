@@ -71,17 +71,26 @@ class MeteGSConfig(TrainConfig):
     """Options of `fog-gaussians` (when listed in `weather`)."""
     lens_droplets: LensDropletsConfig = field(default_factory=LensDropletsConfig)
     """Options of `lens-droplets` (when listed in `weather`)."""
+    weather_options: dict[str, dict[str, int | float | bool | str]] = field(default_factory=dict)
+    """Options of weather models by name, plugins included (e.g. --weather-options snow max_count 500)."""
     compare_baseline: bool = True
     """After training, train plain `3dgs` on the same photos and print both clean-view metrics."""
 
     def weather_config(self, name: str):
-        """The options of a built-in weather model, or None for other (plugin) models (their defaults)."""
-        return {
+        """The config of weather model ``name``: the built-ins' fields above, else the registered default
+        (plugins), with `weather_options` applied on top."""
+        from metegs.config import apply_overrides
+        from metegs.registry import registry
+
+        builtin = {
             "rain-streaks": self.rain_streaks,
             "fog-analytic": self.fog_analytic,
             "fog-gaussians": self.fog_gaussians,
             "lens-droplets": self.lens_droplets,
         }.get(name)
+        config = builtin if builtin is not None else registry("weather").get(name)()
+        options = self.weather_options.get(name)
+        return apply_overrides(config, options, f"weather_options.{name}") if options else config
 
 
 def _trainer_class():

@@ -14,7 +14,6 @@ import torch
 
 from metegs.engine.metegs_config import MeteGSConfig
 from metegs.engine.trainer import Trainer
-from metegs.registry import registry
 from metegs.render import RenderSettings
 from metegs.weather.base import WeatherModel, WeatherScene
 from metegs.weather.compose import render_with_weather
@@ -69,7 +68,7 @@ class MeteGSTrainer(Trainer):
         )
         models = []
         for name in c.weather:
-            config = c.weather_config(name) or registry("weather").get(name)()
+            config = c.weather_config(name)
             model = config.setup(theta=theta, scene=scene).to(self.device)
             if not model.active:
                 self.decide(f"weather {name}", "off: the weather does not call for it")

@@ -117,3 +117,14 @@ def test_eval_of_the_saved_run_reproduces_its_clean_view_metrics(trained):
     m = main(EvalArgs(run_dir=trainer.run_dir, output=trainer.run_dir / "eval-test.json"))
     assert m["reference"] == "clean"
     assert m["psnr"] == pytest.approx(metrics["psnr"], abs=1e-3)
+
+
+def test_weather_options_reach_builtin_and_plugin_models_and_bad_ones_are_named(tmp_path):
+    from metegs.errors import ConfigError
+
+    config = tiny_metegs(tmp_path, weather_options={"rain-streaks": {"max_count": 123}})
+    assert config.weather_config("rain-streaks").max_count == 123
+    assert config.weather_config("fog-analytic") is config.fog_analytic
+    bad = tiny_metegs(tmp_path, weather_options={"fog-analytic": {"no_such_field": 1}})
+    with pytest.raises(ConfigError, match="weather_options.fog-analytic"):
+        bad.weather_config("fog-analytic")
