@@ -41,3 +41,9 @@ _readers.register("metar", "metegs.meteo.readers.metar_reader:MetarReader", desc
 _readers.register("ghcnh", "metegs.meteo.readers.ghcnh_reader:GhcnhReader", description="NOAA GHCNh hourly pipe-separated .psv")
 _readers.register("isd", "metegs.meteo.readers.isd_reader:IsdReader", description="NOAA ISD full format (DS3505): visibility, AA liquid precipitation, MW present weather")
 _readers.register("open-meteo", "metegs.meteo.readers.open_meteo_reader:OpenMeteoReader", description="Open-Meteo hourly JSON (precipitation, visibility, wind)")
+
+_restorers = registry("restorer")
+_restorers.register("dcp", "metegs.restore.dehaze:DarkChannelPriorConfig", description="dark channel prior dehazing, guided-filter transmission refinement (He et al. 2009/2011)")
+_restorers.register("kang2012", "metegs.restore.derain:KangDerainConfig", description="rain-streak removal by bilateral decomposition, dictionary learning and HOG clustering (Kang et al. 2012)")
+_restorers.register("restormer", "metegs.restore.learned:RestormerConfig", description="Restormer deraining from user-given weights (Zamir et al. 2022)")
+_restorers.register("dehazeformer", "metegs.restore.learned:DehazeFormerConfig", description="DehazeFormer dehazing from user-given weights (Song et al. 2023)")

@@ -24,7 +24,7 @@ from typing import Any
 from metegs.errors import ConfigError, PluginError
 
 ENTRY_POINT_GROUP = "metegs.plugins"
-KINDS = ("parser", "rasterizer", "weather", "loss", "densifier", "method", "meteo_reader")
+KINDS = ("parser", "rasterizer", "weather", "loss", "densifier", "method", "meteo_reader", "restorer")
 
 
 class PluginWarning(UserWarning):

@@ -1,4 +1,10 @@
-"""`metegs-bench`: benchmarks. `metegs-bench raster` times every rasteriser backend in one process."""
+"""`metegs-bench`: benchmarks.
+
+metegs-bench configs/bench/default.yaml      # a method suite (same as `metegs-bench suite FILE`)
+metegs-bench suite --quick                   # the reduced CI suite (configs/bench/quick.yaml)
+metegs-bench raster                          # every rasteriser backend, forward / backward
+metegs-bench step                            # whole training steps
+"""
 
 from __future__ import annotations
 
@@ -77,6 +83,94 @@ class StepArgs(_BenchArgs):
     """Image height of the synthetic scene (default: its default, 120)."""
     repeats: int = 10
     """Timed steps per configuration (after one warm-up step); the median is reported."""
+
+
+@dataclass
+class SuiteArgs:
+    """Run a benchmark suite (scenes x conditions x methods) from a YAML file: resumable, gathered into
+    results.json, results.md (tables) and plots/ (PSNR against time)."""
+
+    suite: tyro.conf.Positional[Path | None] = None
+    """Suite file (configs/bench/*.yaml); none with --quick: configs/bench/quick.yaml."""
+    quick: bool = False
+    """Run the reduced CI suite (tiny synthetic scene, few steps, one condition) and check its ordering."""
+    output: Path | None = None
+    """Suite folder (default: the file's `output`, else outputs/bench/<name>)."""
+    only_scenes: list[str] | None = None
+    """Run only these scenes."""
+    only_conditions: list[str] | None = None
+    """Run only these conditions."""
+    only_methods: list[str] | None = None
+    """Run only these methods."""
+    fail_fast: bool = False
+    """Stop at the first failed run (default: record the failure and go on)."""
+    dry_run: bool = False
+    """Print the plan (runs and their folders) and exit."""
+    report_only: bool = False
+    """Rebuild results.md and the plots from an existing results.json."""
+    fail_on_check: bool = True
+    """Exit with status 1 when an expected ordering of the suite's checks fails (--no-fail-on-check: exit 0)."""
+
+
+QUICK_SUITE = Path(__file__).resolve().parents[2] / "configs" / "bench" / "quick.yaml"
+"""The reduced suite `--quick` runs (in a source checkout)."""
+
+
+def suite(args: SuiteArgs) -> dict:
+    from metegs.bench.report import write_report
+    from metegs.bench.suite import SuiteRunner
+    from metegs.bench.suite_config import load_suite
+
+    if args.quick and args.suite is not None:
+        raise ConfigError("give a suite file or --quick, not both")
+    path = QUICK_SUITE if args.quick else args.suite
+    if path is None:
+        raise ConfigError("give a suite file (e.g. configs/bench/default.yaml) or --quick")
+    if not Path(path).is_file():
+        raise ConfigError(
+            f"{path}: suite file not found" + (" (--quick needs a source checkout)" if args.quick else "")
+        )
+    config = load_suite(Path(path))
+    console = Console(stderr=True)
+    runner = SuiteRunner(
+        config,
+        output=args.output,
+        console=console,
+        fail_fast=args.fail_fast,
+        only_scenes=args.only_scenes,
+        only_conditions=args.only_conditions,
+        only_methods=args.only_methods,
+    )
+    if args.report_only:
+        results_path = runner.output / "results.json"
+        if not results_path.is_file():
+            raise ConfigError(f"{results_path} not found: run the suite first")
+        results = json.loads(results_path.read_text())
+        write_report(results, runner.output)
+        console.print(f"wrote {runner.output / 'results.md'}")
+        return results
+    if args.dry_run:
+        plan = runner.plan()
+        for line in plan:
+            print(line)
+        return {"plan": plan}
+    console.print(
+        f"[bold]metegs-bench[/] suite {config.name} ({path}): {len(runner.scenes)} scene(s) x "
+        f"{len(runner.condition_specs)} condition(s) x {len(runner.methods)} method(s) -> {runner.output}"
+    )
+    results = runner.run()
+    console.print((runner.output / "results.md").read_text())
+    console.print(
+        f"[bold]done[/] in {results['total_seconds']:.0f} s: {runner.output / 'results.json'}, "
+        f"{runner.output / 'results.md'}, {runner.output / 'plots'}"
+    )
+    failed_checks = [c for c in results["checks"] if c["passed"] is False]
+    if failed_checks:
+        lines = ", ".join(f"{c['pair']} ({c['metric']}, {c['scene']}/{c['condition']})" for c in failed_checks)
+        console.print(f"[bold red]expected ordering fails[/]: {lines}", highlight=False)
+        if args.fail_on_check:
+            raise SystemExit(1)
+    return results
 
 
 def _table(title: str, columns: tuple[str, ...]) -> Table:
@@ -173,8 +267,21 @@ def entrypoint() -> None:
     """Console script `metegs-bench`."""
 
     def main() -> None:
-        args = tyro.extras.subcommand_cli_from_dict({"raster": RasterArgs, "step": StepArgs}, prog="metegs-bench")
-        if isinstance(args, RasterArgs):
+        import sys
+
+        argv = sys.argv[1:]
+        if (
+            argv
+            and argv[0] not in ("raster", "step", "suite")
+            and (argv[0].endswith((".yaml", ".yml")) or argv[0] == "--quick")
+        ):
+            argv = ["suite", *argv]  # `metegs-bench FILE.yaml` and `metegs-bench --quick` run a suite
+        args = tyro.extras.subcommand_cli_from_dict(
+            {"suite": SuiteArgs, "raster": RasterArgs, "step": StepArgs}, prog="metegs-bench", args=argv
+        )
+        if isinstance(args, SuiteArgs):
+            suite(args)
+        elif isinstance(args, RasterArgs):
             raster(args)
         else:
             step(args)

@@ -31,7 +31,7 @@ def method_configs() -> dict[str, tuple[str, Any]]:
     return out
 
 
-COMPONENT_KINDS = ("weather", "parser", "rasterizer", "densifier", "loss", "meteo_reader")
+COMPONENT_KINDS = ("weather", "parser", "rasterizer", "densifier", "loss", "meteo_reader", "restorer")
 """Registry kinds listed by ``metegs-train --help`` (methods are the subcommands)."""
 
 
@@ -108,7 +108,14 @@ def main(argv: list[str] | None = None) -> dict:
         f"{int(trainer.dataset.cameras.width[0])}x{int(trainer.dataset.cameras.height[0])} px), "
         f"backend [bold]{c.backend}[/] on {c.device}, {len(trainer.model)} initial Gaussians -> {trainer.run_dir}"
     )
+    viewer = None
+    if getattr(c, "viewer", False):
+        from metegs.viewer import start_live_viewer
+
+        viewer = start_live_viewer(trainer, console)
     metrics = trainer.train()
+    if viewer is not None:
+        viewer.training_finished()
     lp = metrics["lpips"]
     console.print(
         f"[bold green]done[/]: {metrics['train_seconds']:.1f} s training, {metrics['wall_seconds']:.1f} s wall; {metrics['split']} PSNR {metrics['psnr']:.2f} dB, "
@@ -124,6 +131,9 @@ def main(argv: list[str] | None = None) -> dict:
         console.print(comparison_table(rows))
         write_comparison(trainer.run_dir / "comparison.json", rows)
         metrics = {**metrics, "baseline": rows["3dgs"]}
+    if viewer is not None:
+        console.print(f"[bold]viewer[/] still open at {viewer.url}; Ctrl+C quits")
+        viewer.serve_forever()
     return metrics
 
 

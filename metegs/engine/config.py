@@ -80,6 +80,12 @@ class TrainConfig(InstantiateConfig):
     """Allow downloading the LPIPS backbone weights into the torch hub cache when missing."""
     progress: bool = True
     """Show a live progress bar."""
+    viewer: bool = False
+    """Open the browser viewer (viser) while training: watch, pause / step, drive the weather; it stays open after."""
+    viewer_host: str = "127.0.0.1"
+    """Address the viewer binds to (0.0.0.0 exposes it to the network)."""
+    viewer_port: int = 7007
+    """Port of the viewer (the next free one when it is taken)."""
     dataset: DatasetConfig = field(default_factory=DatasetConfig)
     """How views are read, scaled and split."""
     model: ModelConfig = field(default_factory=ModelConfig)

@@ -76,6 +76,8 @@ class Trainer:
         self.step = 0
         self.history: list[dict] = []
         self.train_seconds = 0.0
+        self.step_hooks: list = []
+        """Called as ``hook(trainer, stats)`` after every training step (the live viewer; a hook may block to pause)."""
         self.run_dir = Path(run_dir) if run_dir is not None else self._default_run_dir()
         self.setup_method()
         if config.load_checkpoint is not None:
@@ -229,6 +231,8 @@ class Trainer:
                 self.train_seconds += time.perf_counter() - t0
                 self.step += 1
                 progress.update(self.step, stats, len(self.model))
+                for hook in self.step_hooks:
+                    hook(self, stats)
                 if eval_every and self.step % eval_every == 0 and self.step < c.max_steps:
                     self.record_eval(quick=True)
                 if c.checkpoint_every and self.step % c.checkpoint_every == 0:

@@ -84,6 +84,12 @@ def project_gaussians(
     cov3d = covariance_3d(quats_safe, scales_safe)
     JW = J @ R
     cov2 = JW @ cov3d @ JW.transpose(1, 2)
+    overflow = ~torch.isfinite(cov2).all(dim=2).all(dim=1)
+    if bool(overflow.any()):  # covariances beyond the float range (scales ~1e19): culled, with zero (not NaN) gradients
+        in_depth = in_depth & ~overflow
+        scales_safe = torch.where(overflow[:, None], torch.ones_like(scales_safe), scales_safe)
+        cov3d = covariance_3d(quats_safe, scales_safe)
+        cov2 = JW @ cov3d @ JW.transpose(1, 2)
     a = cov2[:, 0, 0] + eps2d
     b = cov2[:, 0, 1]
     c = cov2[:, 1, 1] + eps2d

@@ -1,0 +1,190 @@
+"""The per-view 2D restorers: dark channel prior dehazing, Kang et al. deraining, the learned slots."""
+
+import warnings
+
+import numpy as np
+import pytest
+import torch
+
+from metegs.errors import ConfigError
+from metegs.restore import (
+    ChainRestorer,
+    make_restorer,
+    restorer_config,
+    restorer_for_kinds,
+    restorer_names,
+)
+from metegs.restore.dehaze import dark_channel, estimate_airlight
+
+
+def psnr(a, b):
+    return float(10 * np.log10(1.0 / max(np.mean((np.asarray(a) - np.asarray(b)) ** 2), 1e-12)))
+
+
+def textured(h=48, w=64, seed=0):
+    """A colourful image whose every patch has a dark channel (the dark channel prior holds)."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:h, 0:w] / 8.0
+    img = np.stack([0.5 + 0.45 * np.sin(xx + yy), 0.5 + 0.45 * np.sin(1.3 * xx - 0.7 * yy + 2), 0.05 + 0.0 * xx], -1)
+    return np.clip(img + 0.02 * rng.standard_normal(img.shape), 0, 1).astype(np.float32)
+
+
+def test_dark_channel_prior_inverts_the_fog_model():
+    clean = textured()
+    A = np.array([0.85, 0.88, 0.9], np.float32)
+    t = np.linspace(0.35, 0.8, clean.shape[1], dtype=np.float32)[None, :, None].repeat(clean.shape[0], 0)
+    t[:6] = 0.01  # a band of dense haze (sky): where the prior finds the airlight
+    foggy = clean * t + A * (1 - t)
+    dcp = make_restorer("dcp")
+    assert np.abs(estimate_airlight(foggy, dark_channel(foggy, 3)) - A).max() < 0.05
+    restored = dcp.restore(foggy)
+    assert restored.shape == clean.shape and restored.dtype == np.float32
+    assert psnr(restored[6:], clean[6:]) > psnr(foggy[6:], clean[6:]) + 8
+
+
+def test_dcp_scales_its_patch_and_radius_with_the_image():
+    dcp = make_restorer("dcp")
+    small = dcp.transmission(textured(24, 32))[0]
+    big = dcp.transmission(textured(240, 320))[0]
+    assert small.shape == (24, 32) and big.shape == (240, 320)
+    assert np.isfinite(small).all() and np.isfinite(big).all()
+
+
+def streaks(image, seed=0, n=40, length=10, value=0.95):
+    """Thin bright slanted streaks, mostly of one orientation (as rain within an exposure)."""
+    rng = np.random.default_rng(seed)
+    out = image.copy()
+    h, w = image.shape[:2]
+    for _ in range(n):
+        y, x = rng.integers(0, h - length), rng.integers(0, w - 4)
+        for k in range(length):
+            xx = x + k // 4
+            out[y + k, xx] = 0.6 * out[y + k, xx] + 0.4 * value
+    return out
+
+
+def test_kang_derain_removes_most_of_the_streaks():
+    yy, xx = np.mgrid[0:48, 0:64] / 12.0
+    clean = np.stack([0.4 + 0.2 * np.sin(xx), 0.35 + 0.2 * np.cos(yy), 0.3 + 0.1 * np.sin(xx + yy)], -1).astype(
+        np.float32
+    )
+    rainy = streaks(clean)
+    derain = make_restorer("kang2012", iterations=4, train_patches=1500)
+    restored = derain.restore(rainy)
+    assert restored.shape == clean.shape and np.isfinite(restored).all()
+    assert 0 < derain.last_info["rain_atoms"] < derain.last_info["atoms"]
+    assert psnr(restored, clean) > psnr(rainy, clean) + 1.0
+
+
+def test_kang_derain_is_reproducible_and_handles_tiny_images():
+    img = textured(24, 32)
+    a = make_restorer("kang2012", iterations=2).restore(img)
+    b = make_restorer("kang2012", iterations=2).restore(img)
+    assert np.array_equal(a, b)
+    tiny = textured(5, 6)
+    assert np.array_equal(make_restorer("kang2012").restore(tiny), tiny)
+
+
+def test_restorers_reject_bad_images():
+    with pytest.raises(Exception, match="RGB image"):
+        make_restorer("dcp").restore(np.zeros((4, 4), np.float32))
+    with pytest.raises(Exception, match="NaN"):
+        make_restorer("dcp").restore(np.full((4, 4, 3), np.nan, np.float32))
+
+
+def test_kinds_choose_and_chain_restorers():
+    assert restorer_for_kinds("fog").name == "dcp"
+    assert restorer_for_kinds("rain", options={"kang2012": {"iterations": 1}}).name == "kang2012"
+    chain = restorer_for_kinds("rain+fog")
+    assert isinstance(chain, ChainRestorer) and chain.name == "kang2012+dcp"
+    assert chain.removes == {"rain", "fog"}
+    out = restorer_for_kinds("rain+fog", options={"kang2012": {"iterations": 1}}).restore(textured(24, 32))
+    assert out.shape == (24, 32, 3) and np.isfinite(out).all()
+    with pytest.raises(ConfigError):
+        restorer_for_kinds("snow")
+
+
+def test_names_and_options_are_checked():
+    assert {"dcp", "kang2012", "restormer", "dehazeformer"} <= set(restorer_names())
+    with pytest.raises(ConfigError, match="unknown restorer"):
+        restorer_config("nope")
+    with pytest.raises(ConfigError, match="unknown config field"):
+        restorer_config("dcp", {"omegaa": 1})
+    assert restorer_config("dcp", {"omega": 0.8}).omega == 0.8
+
+
+@pytest.mark.parametrize(
+    "slot,env", [("restormer", "METEGS_RESTORMER_WEIGHTS"), ("dehazeformer", "METEGS_DEHAZEFORMER_WEIGHTS")]
+)
+def test_learned_slots_say_what_weights_to_give(monkeypatch, tmp_path, slot, env):
+    monkeypatch.delenv(env, raising=False)
+    with pytest.raises(ConfigError, match=env):
+        make_restorer(slot)
+    with pytest.raises(ConfigError, match="not found"):
+        make_restorer(slot, weights=str(tmp_path / "missing.pth"))
+    bad = tmp_path / "bad.ts"
+    bad.write_bytes(b"not a model")
+    with pytest.raises(Exception, match="TorchScript"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        make_restorer(slot, weights=str(bad))
+
+
+class _Brighten(torch.nn.Module):
+    def forward(self, x):
+        assert x.shape[-1] % 8 == 0 and x.shape[-2] % 8 == 0  # padded to the network's multiple
+        return x * 0.5 + 0.25
+
+
+@pytest.mark.parametrize("slot", ["restormer", "dehazeformer"])
+def test_learned_slot_runs_a_torchscript_network(monkeypatch, tmp_path, slot):
+    path = tmp_path / "net.ts"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)  # torch.jit is deprecated, still what many users have
+        torch.jit.script(_Brighten()).save(str(path))
+    env = "METEGS_RESTORMER_WEIGHTS" if slot == "restormer" else "METEGS_DEHAZEFORMER_WEIGHTS"
+    monkeypatch.setenv(env, str(path))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        restorer = make_restorer(slot)
+    img = textured(21, 30)
+    out = restorer.restore(img)
+    assert out.shape == img.shape and np.isfinite(out).all()
+    if slot == "restormer":  # [0, 1] in and out
+        np.testing.assert_allclose(out, img * 0.5 + 0.25, atol=1e-6)
+    else:  # [-1, 1]: (0.5(2x - 1) + 0.25 + 1)/2
+        np.testing.assert_allclose(out, np.clip(((2 * img - 1) * 0.5 + 0.25 + 1) / 2, 0, 1), atol=1e-6)
+
+
+def test_learned_slot_runs_an_exported_program(tmp_path):
+    from torch.export import Dim
+
+    h, w = Dim("h", min=1, max=512), Dim("w", min=1, max=512)
+    program = torch.export.export(_Scale(), (torch.rand(1, 3, 24, 32),), dynamic_shapes={"x": {2: 8 * h, 3: 8 * w}})
+    path = tmp_path / "net.pt2"
+    torch.export.save(program, str(path))
+    img = textured(21, 30)
+    out = make_restorer("restormer", weights=str(path)).restore(img)
+    np.testing.assert_allclose(out, img * 0.5, atol=1e-6)
+
+
+class _Scale(torch.nn.Module):
+    def forward(self, x):
+        return x * 0.5
+
+
+def test_learned_slot_loads_a_state_dict_with_an_arch(tmp_path):
+    net = torch.nn.Conv2d(3, 3, 1)
+    torch.nn.init.eye_(net.weight.data[:, :, 0, 0])
+    torch.nn.init.zeros_(net.bias)
+    path = tmp_path / "w.pth"
+    torch.save({"params": net.state_dict()}, path)
+    restorer = make_restorer(
+        "restormer",
+        weights=str(path),
+        arch="torch.nn:Conv2d",
+        arch_kwargs={"in_channels": 3, "out_channels": 3, "kernel_size": 1},
+    )
+    img = textured(16, 16)
+    np.testing.assert_allclose(restorer.restore(img), img, atol=1e-6)
+    with pytest.raises(ConfigError, match="cannot import"):
+        make_restorer("restormer", weights=str(path), arch="nowhere.module:Net")

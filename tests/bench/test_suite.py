@@ -1,0 +1,272 @@
+"""`metegs-bench SUITE.yaml`: the suite file, the runner (resumable, results.json), the report and the CLI."""
+
+import json
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import yaml
+
+from metegs.bench.plot import Series, line_chart_png, nice_ticks
+from metegs.bench.report import evaluate_checks, markdown_report
+from metegs.bench.suite_config import CheckSpec, load_suite, suite_from_dict
+from metegs.errors import ConfigError
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def test_the_shipped_suites_parse():
+    default = load_suite(REPO / "configs/bench/default.yaml")
+    assert [s.name for s in default.scenes] == ["synthetic", "ethiopianhead"]
+    assert len(default.conditions) == 8 and {c.kind for c in default.conditions} == {"rain", "fog", "rain+fog"}
+    names = {m.name for m in default.methods}
+    assert {"3dgs", "3dgs-clean", "restore+3dgs", "metegs-full", "metegs-blind", "abl-a", "abl-d"} <= names
+    assert default.scenes[1].data.name == "ethiopianhead-llff"
+    quick = load_suite(REPO / "configs/bench/quick.yaml")
+    assert quick.train["max_steps"] <= 100 and len(quick.conditions) == 1
+    assert quick.checks[0].chain() == [("3dgs-clean", ">=", "metegs-full"), ("metegs-full", ">", "3dgs")]
+
+
+def _minimal(**extra):
+    data = {
+        "name": "t",
+        "scenes": [{"name": "synthetic"}],
+        "conditions": [{"name": "f", "kind": "fog", "fog": {"visibility_m": 300, "explicit": True}}],
+        "methods": [{"name": "3dgs"}],
+    }
+    data.update(extra)
+    return data
+
+
+@pytest.mark.parametrize(
+    "change,message",
+    [
+        ({"bogus": 1}, "unknown key"),
+        ({"methods": [{"name": "a"}, {"name": "a"}]}, "duplicate method"),
+        ({"methods": [{"name": "a/b"}]}, "folder-safe"),
+        ({"methods": [{"name": "a", "photos": "noisy"}]}, "photos must be"),
+        ({"checks": [{"expect": "3dgs >> x"}]}, "names unknown method"),
+        ({"checks": [{"expect": "3dgs"}]}, "expected 'A > B'"),
+        ({"checks": [{"expect": "3dgs > 3dgs", "metrics": ["mse"]}]}, "unknown metric"),
+        ({"eval_every": 2}, "eval_every"),
+        ({"conditions": [], "methods": [{"name": "3dgs"}]}, "at least one condition"),
+    ],
+)
+def test_suite_file_errors_are_clear(change, message):
+    with pytest.raises(ConfigError, match=message):
+        suite_from_dict(_minimal(**change))
+
+
+def _run(scene, cond, method, psnr, ssim, status="done", oracle=False, history=None):
+    return {
+        "scene": scene,
+        "condition": cond,
+        "method": method,
+        "label": method,
+        "group": "main",
+        "oracle": oracle,
+        "photos": "clean" if oracle else "degraded",
+        "status": status,
+        "psnr": psnr,
+        "ssim": ssim,
+        "lpips": None,
+        "num_gaussians": 100,
+        "time_seconds": 10.0,
+        "train_seconds": 10.0,
+        "render_fps": 50.0,
+        "history": history or [{"time_seconds": 0.0, "psnr": 10.0}, {"time_seconds": 10.0, "psnr": psnr}],
+    }
+
+
+def _results():
+    suite = suite_from_dict(
+        _minimal(
+            methods=[{"name": "clean", "photos": "clean", "oracle": True}, {"name": "a"}, {"name": "b"}, {"name": "c"}],
+            checks=[{"expect": "clean >= a > b", "metrics": ["psnr", "ssim", "lpips"]}],
+        )
+    )
+    runs = [
+        _run("synthetic", None, "clean", 30.0, 0.95, oracle=True),
+        _run("synthetic", "f", "a", 25.0, 0.80),
+        _run("synthetic", "f", "b", 20.0, 0.85),
+        _run("synthetic", "f", "c", 22.0, 0.70),
+    ]
+
+    class C:
+        kind = "fog"
+
+    checks = evaluate_checks(suite, runs, {"f": C()})
+    methods = [{"name": m.name, "label": m.name, "group": m.group, "oracle": m.oracle} for m in suite.methods]
+    return {
+        "suite": "t",
+        "created": "now",
+        "total_seconds": 1.0,
+        "host": {},
+        "scenes": ["synthetic"],
+        "methods": methods,
+        "conditions": {"f": {"kind": "fog", "fog": {"visibility_m": 300.0}, "theta": {}}},
+        "runs": runs,
+        "support_runs": [],
+        "checks": checks,
+        "all_checks_passed": all(c["passed"] is not False for c in checks),
+    }
+
+
+def test_checks_and_table_marks():
+    results = _results()
+    verdict = {(c["pair"], c["metric"]): c["passed"] for c in results["checks"]}
+    assert verdict[("clean >= a", "psnr")] and verdict[("a > b", "psnr")]
+    assert verdict[("a > b", "ssim")] is False and verdict[("a > b", "lpips")] is None
+    md = markdown_report(results)
+    assert "| a | **25.00** | <u>0.8000</u> | – |" in md
+    assert "| c | <u>22.00</u> | 0.7000 | – |" in md and "| b | 20.00 | **0.8500** |" in md
+    assert "| a | **25.00** | <u>0.8000</u> | – | 10.0 | 100 | 50.0 |" in md  # equal times: nothing marked
+    assert "*clean (oracle)* | 30.00" in md  # the oracle is shown, not ranked
+    assert "**FAIL**" in md and "some fail" in md
+
+
+def test_curves_plot_is_a_png():
+    png = line_chart_png([Series("a", [0, 1, 2], [10, 12, 13]), Series("b", [0, 3], [9, 14], dashed=True)], "t")
+    img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
+    assert img.shape == (560, 1000, 3) and (img < 250).any()
+    empty = cv2.imdecode(np.frombuffer(line_chart_png([], "t"), np.uint8), cv2.IMREAD_COLOR)
+    assert empty is not None
+    ticks = nice_ticks(0, 97.5)
+    assert ticks[0] <= 0 and ticks[-1] >= 97.5
+
+
+def test_cli_takes_a_suite_file_positionally(monkeypatch, capsys, tmp_path):
+    from metegs.cli import bench
+
+    path = tmp_path / "s.yaml"
+    path.write_text(yaml.safe_dump(_minimal(output=str(tmp_path / "out"))))
+    monkeypatch.setattr(sys, "argv", ["metegs-bench", str(path), "--dry-run"])
+    bench.entrypoint()
+    out = capsys.readouterr().out
+    assert "synthetic / f / 3dgs" in out and "to run" in out
+    monkeypatch.setattr(sys, "argv", ["metegs-bench", "suite", "--quick", "--dry-run", "--output", str(tmp_path / "q")])
+    bench.entrypoint()
+    assert "synthetic / fog-200 / metegs-full" in capsys.readouterr().out
+
+
+def test_check_spec_parses_chains():
+    assert CheckSpec("a >= b > c").chain() == [("a", ">=", "b"), ("b", ">", "c")]
+
+
+def _tiny_scene_on_disk(folder: Path) -> Path:
+    """The synthetic scene written as a nerfstudio dataset without depth or scale (like a real capture)."""
+    import dataclasses
+
+    from metegs.data.config import DatasetConfig, SyntheticSceneConfig
+    from metegs.data.parsers.base import parse_scene
+    from metegs.synth.writers import DatasetWriter, encode_image
+
+    scene = parse_scene(
+        None,
+        None,
+        DatasetConfig(test_every=4, synthetic=SyntheticSceneConfig(width=32, height=24, num_views=8, num_points=300)),
+    )
+    scene = dataclasses.replace(scene, depths=None, metric_scale=None)
+    folder.mkdir(parents=True)
+    writer = DatasetWriter(scene, folder)
+    for i, image in enumerate(scene.images):
+        path = folder / writer.image_rel[i]
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(encode_image(image, ".png"))
+    writer.finish(None)
+    return folder
+
+
+@pytest.mark.slow
+def test_a_tiny_suite_runs_resumes_and_reports(tmp_path):
+    from metegs.bench.suite import SuiteRunner
+
+    scene_dir = _tiny_scene_on_disk(tmp_path / "scene")
+    suite = suite_from_dict(
+        {
+            "name": "tiny",
+            "eval_every": 0.5,
+            "fps_repeats": 1,
+            "train": {
+                "max_steps": 6,
+                "checkpoint_every": 3,
+                "save_renders": False,
+                "densify": {"max_gaussians": 600},
+                "dataset": {
+                    "test_every": 4,
+                    "synthetic": {"width": 32, "height": 24, "num_views": 8, "num_points": 300},
+                },
+            },
+            "scenes": [
+                {"name": "synthetic"},
+                {"name": "files", "data": str(scene_dir), "synth": {"assumed_depth_m": 30.0}},
+            ],
+            "conditions": [
+                {
+                    "name": "rf",
+                    "kind": "rain+fog",
+                    "rain": {"record": "storm", "class": "violent"},
+                    "fog": {"visibility_m": 300, "explicit": True},
+                },
+            ],
+            "methods": [
+                {"name": "3dgs"},
+                {"name": "3dgs-clean", "photos": "clean", "oracle": True},
+                {
+                    "name": "restore+3dgs",
+                    "photos": "restored",
+                    "restorer_options": {"kang2012": {"iterations": 1, "train_patches": 200}},
+                },
+                {"name": "restormer+3dgs", "photos": "restored", "restorer": {"rain": "restormer"}, "optional": True},
+                {
+                    "name": "metegs-full",
+                    "method": "metegs-full",
+                    "overrides": {"weights": {"perceptual": 0.0}},
+                    "scenes": ["files"],
+                },
+            ],
+            "checks": [{"expect": "3dgs-clean >= 3dgs", "metrics": ["psnr"]}],
+        }
+    )
+    out = tmp_path / "out"
+    results = SuiteRunner(suite, output=out).run()
+    by = {(r["scene"], r["condition"], r["method"]): r for r in results["runs"]}
+    assert by[("synthetic", None, "3dgs-clean")]["status"] == "done"
+    assert by[("files", "rf", "metegs-full")]["status"] == "done"
+    assert by[("files", "rf", "restormer+3dgs")]["status"] == "skipped"
+    assert ("synthetic", "rf", "metegs-full") not in by  # scenes filter
+    restored = by[("files", "rf", "restore+3dgs")]
+    assert restored["restorer"] == "kang2012+dcp" and restored["preprocess_seconds"] > 0
+    for r in results["runs"]:
+        if r["status"] == "done":
+            assert r["render_fps"] > 0 and r["history"][0]["step"] == 0 and r["history"][0]["time_seconds"] >= 0
+            assert r["history"][-1]["step"] == 6 and len(r["history"]) >= 3
+    cond = json.loads((out / "files" / "rf" / "condition.json").read_text())
+    assert cond["rain"]["precip_mm_h"] == pytest.approx(72.5) and cond["theta"]["rain"]["active"]
+    assert cond["metres_per_unit_source"].startswith("guess")
+    assert (out / "files" / "clean" / "3dgs-clean" / "metrics.json").is_file()  # the depth source
+    assert json.loads((out / "conditions.json").read_text())["conditions"]["rf"]["theta"]["files"]["rain_active"]
+    assert (out / "results.md").is_file() and (out / "plots" / "files__rf.png").is_file()
+    assert results["checks"] and results["total_seconds"] > 0
+
+    # resumable: finished runs are reused; a run cut short resumes from its checkpoint
+    stamp = (out / "synthetic" / "rf" / "3dgs" / "metrics.json").stat().st_mtime_ns
+    cut = out / "files" / "rf" / "3dgs"
+    (cut / "metrics.json").unlink()
+    (cut / "bench.json").unlink()
+    for ckpt in (cut / "checkpoints").glob("step-000006.ckpt"):
+        ckpt.unlink()
+    again = SuiteRunner(suite, output=out).run()
+    by2 = {(r["scene"], r["condition"], r["method"]): r for r in again["runs"]}
+    assert by2[("synthetic", "rf", "3dgs")]["status"] == "cached"
+    assert (out / "synthetic" / "rf" / "3dgs" / "metrics.json").stat().st_mtime_ns == stamp
+    resumed = by2[("files", "rf", "3dgs")]
+    assert resumed["status"] == "done" and resumed["history"][-1]["step"] == 6
+    assert by2[("files", "rf", "3dgs")]["psnr"] is not None
+
+    # a changed suite does not silently pass old runs off as new ones
+    suite.train["max_steps"] = 7
+    third = SuiteRunner(suite, output=out).run()
+    assert all(r.get("config_changed") == ["max_steps"] for r in third["runs"] if r["status"] == "cached")
