@@ -186,3 +186,13 @@ def test_llff_needs_depth_and_is_written_as_llff(tmp_path):
     assert all(c.read_bytes() == s.read_bytes() for c, s in zip(back.clean_image_paths, scene.image_paths))
     assert all(r.read_bytes() != s.read_bytes() for r, s in zip(back.image_paths, scene.image_paths))
     np.testing.assert_allclose(back.cameras.camera_to_worlds, scene.cameras.camera_to_worlds)
+
+
+def test_synthetic_copy_reads_back_with_its_scale_exposure_and_up(storm):
+    import torch
+
+    scene = parse_scene(storm, None, DatasetConfig())
+    original = parse_scene(None, None, TINY)
+    assert scene.metric_scale == original.metric_scale
+    assert np.allclose(scene.up, original.up)
+    assert torch.allclose(scene.cameras.exposure_time_s, original.cameras.exposure_time_s)

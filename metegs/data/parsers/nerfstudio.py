@@ -96,6 +96,9 @@ class NerfstudioParser:
             raise DataError(source, "missing or empty 'frames' list")
         _check_model(meta, source, "the top level")
         views = [self._frame(meta, fr, i, source) for i, fr in enumerate(frames)]
+        extra = _metegs_block(meta, len(frames), source)
+        for v, exposure in zip(views, extra["exposure"]):
+            v["exposure"] = exposure
         views.sort(key=lambda v: v["name"])
         present = [v for v in views if v["path"].is_file()]
         missing = [v["name"] for v in views if not v["path"].is_file()]
@@ -106,6 +109,7 @@ class NerfstudioParser:
         cams = Cameras.create(
             gl_to_cv(np.stack([v["c2w"] for v in present])),
             *([v[k] for v in present] for k in _INTRINSICS),
+            exposure_time_s=None if any(v["exposure"] is None for v in present) else [v["exposure"] for v in present],
         )
         names = [v["name"] for v in present]
         train, test = _split(meta, names, source.parent, options.test_every)
@@ -114,7 +118,7 @@ class NerfstudioParser:
         return SceneData(
             cameras=cams, names=names, image_paths=paths, clean_image_paths=find_clean_paths(source.parent, paths),
             depths=_npy_depths(present, source), train_indices=train, test_indices=test, points=points,
-            point_colors=colors, source=path,
+            point_colors=colors, source=path, **extra["scene"],
         )
 
     @staticmethod
@@ -291,3 +295,26 @@ def _ply_xyz_rgb(vertex: np.ndarray, path: Path) -> tuple[np.ndarray, np.ndarray
     else:
         scale = float(np.iinfo(kind).max)
     return xyz, np.clip(rgb / scale, 0.0, 1.0)
+
+
+def _metegs_block(meta: dict, n_frames: int, source: Path) -> dict:
+    """What metegs-synth adds under "metegs": per-frame exposure times and the scene's scale, up and colour space."""
+    block = meta.get("metegs")
+    out = {"exposure": [None] * n_frames, "scene": {}}
+    if not isinstance(block, dict):
+        return out
+    exposure = block.get("exposure_time_s")
+    if exposure is not None:
+        if not isinstance(exposure, list) or len(exposure) != n_frames:
+            raise DataError(source, f"metegs.exposure_time_s must list one value per frame ({n_frames})")
+        out["exposure"] = [float(e) for e in exposure]
+    if block.get("metric_scale") is not None:
+        out["scene"]["metric_scale"] = float(block["metric_scale"])
+    if block.get("up") is not None:
+        up = np.asarray(block["up"], dtype=np.float32).reshape(-1)
+        if up.shape != (3,) or not np.isfinite(up).all() or np.linalg.norm(up) == 0:
+            raise DataError(source, f"metegs.up must be a non-zero 3-vector, got {block['up']!r}")
+        out["scene"]["up"] = up / np.linalg.norm(up)
+    if block.get("image_space") in ("srgb", "linear"):
+        out["scene"]["image_space"] = block["image_space"]
+    return out
