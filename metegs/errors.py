@@ -24,3 +24,7 @@ class ConfigError(MetegsError):
 
 class PluginError(MetegsError):
     """A plugin or registered component cannot be loaded."""
+
+
+class TrainingDiverged(MetegsError):
+    """Training produced non-finite values; the message names them and a checkpoint to resume from."""

@@ -224,21 +224,41 @@ class Trainer:
         self.save_decisions()
         eval_every = int(round(c.eval_every * c.max_steps)) if c.eval_every > 0 else 0
         order = self._view_order()
+        last_good = self._latest_checkpoint() or self.save()
         with TrainProgress(c.max_steps, start=self.step, enabled=c.progress, console=self.console) as progress:
             while self.step < c.max_steps:
                 t0 = time.perf_counter()
                 stats = self.train_step(next(order))
                 self.train_seconds += time.perf_counter() - t0
                 self.step += 1
+                self._check_finite(stats, last_good)
                 progress.update(self.step, stats, len(self.model))
                 for hook in self.step_hooks:
                     hook(self, stats)
                 if eval_every and self.step % eval_every == 0 and self.step < c.max_steps:
                     self.record_eval(quick=True)
                 if c.checkpoint_every and self.step % c.checkpoint_every == 0:
-                    self.save()
+                    last_good = self.save()
         self.save()
         return self.finish()
+
+    def _latest_checkpoint(self) -> Path | None:
+        found = sorted((self.run_dir / "checkpoints").glob("*.ckpt"))
+        return found[-1] if found else None
+
+    def _check_finite(self, stats: dict, last_good: Path) -> None:
+        """Stop with the cause and a checkpoint to resume from when the loss or a parameter is no longer finite."""
+        bad = [name for name, p in self.model.params.items() if not bool(torch.isfinite(p).all())]
+        loss = stats.get("loss", 0.0)
+        if not bad and np.isfinite(loss):
+            return
+        from metegs.errors import TrainingDiverged
+
+        what = f"non-finite (NaN/Inf) {', '.join(bad)}" if bad else f"a non-finite loss ({loss})"
+        raise TrainingDiverged(
+            f"training diverged at step {self.step}: {what}. Resume from {last_good} "
+            "(--load-checkpoint) with lower learning rates (--optim.*-lr) or another --backend."
+        )
 
     def save_decisions(self) -> None:
         """decisions.json: what the run chose to do or skip and why, with the weather θ when there is one."""

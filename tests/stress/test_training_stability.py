@@ -65,12 +65,6 @@ def test_ten_times_the_learning_rates_stays_finite(tmp_path, method, steps):
     assert metrics["steps"] == steps and any((tmp_path / method / "checkpoints").glob("*.ckpt"))
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="Trainer.train (metegs/engine/trainer.py) has no non-finite check: at 1000x learning rates the cpu "
-    "backend's projection gradients turn NaN (see test_raster_extremes) and the run finishes silently with NaN "
-    "Gaussians (only save_ply warns)",
-)
 @pytest.mark.filterwarnings("ignore:save_ply")
 def test_a_diverging_run_stops_with_the_cause_and_a_checkpoint(tmp_path):
     trainer = _config("3dgs", 1000.0, 20).setup(run_dir=tmp_path / "run")
