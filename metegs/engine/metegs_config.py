@@ -34,7 +34,7 @@ class MeteGSConfig(TrainConfig):
     """MeteGS: scene + weather Gaussians fit the degraded photos; the scene alone is held to the clean domain."""
 
     _target: type = field(default_factory=lambda: _trainer_class(), repr=False)
-    max_steps: int = 2000
+    max_steps: int = 1500
     """Number of training steps (one view per step; two renders each: weather and clean branch)."""
     degrade: Literal["off", "auto", "rain", "fog", "rain+fog"] = "auto"
     """Degrade a clean scene in memory before training, with the weather of `conditions` (the clean images become
