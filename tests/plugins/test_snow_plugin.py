@@ -38,7 +38,8 @@ def test_snow_is_listed_and_selectable_from_the_command_line(snow_plugin):
     assert "snow" in registry("weather").names()
     assert "snow [metegs" in components_help()  # [metegs-snow] when installed, else [metegs_snow.register]
     cfg = parse_args(["metegs-full", "--weather", "snow", "fog-analytic"])
-    assert cfg.weather == ("snow", "fog-analytic") and cfg.weather_config("snow") is None
+    assert cfg.weather == ("snow", "fog-analytic")
+    assert isinstance(cfg.weather_config("snow"), registry("weather").get("snow"))  # the plugin's own defaults
 
 
 def test_metegs_full_trains_with_snow_instead_of_rain(snow_plugin, tmp_path):
