@@ -304,15 +304,7 @@ class SuiteRunner:
             for h in metrics.get("history", [])
         ]
         record = {
-            "scene": scene.name,
-            "condition": condition,
-            "method": method.name,
-            "label": method.label or method.name,
-            "group": method.group,
-            "oracle": method.oracle,
-            "photos": method.photos,
-            "status": status,
-            "run_dir": _rel(run_dir, self.output),
+            **self._identity(scene, method, condition, run_dir, status),
             **{k: _finite(metrics.get(k)) for k in RESULT_KEYS},
             "preprocess_seconds": pre,
             "time_seconds": round(float(metrics.get("train_seconds") or 0.0) + pre, 3),
@@ -326,12 +318,9 @@ class SuiteRunner:
             record["error"] = "the final metrics are not finite (NaN/Inf): see the run's metrics.json"
         return record
 
-    def _failed(self, scene, method, condition, run_dir, error: str, support: bool = False, status="failed") -> dict:
-        self.console.print(
-            f"[red]{scene.name} / {condition or 'clean'} / {method.name}: {status}[/]: {error.splitlines()[0]}",
-            highlight=False,
-        )
-        record = {
+    def _identity(self, scene, method, condition, run_dir, status: str) -> dict:
+        """The fields naming a run in results.json (what, where, and how it ended)."""
+        return {
             "scene": scene.name,
             "condition": condition,
             "method": method.name,
@@ -341,6 +330,15 @@ class SuiteRunner:
             "photos": method.photos,
             "status": status,
             "run_dir": _rel(run_dir, self.output),
+        }
+
+    def _failed(self, scene, method, condition, run_dir, error: str, support: bool = False, status="failed") -> dict:
+        self.console.print(
+            f"[red]{scene.name} / {condition or 'clean'} / {method.name}: {status}[/]: {error.splitlines()[0]}",
+            highlight=False,
+        )
+        record = {
+            **self._identity(scene, method, condition, run_dir, status),
             "error": error,
         }
         (self.support if support else self.records).append(record)
