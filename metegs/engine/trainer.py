@@ -171,18 +171,16 @@ class Trainer:
 
     def target(self, index: int, background: torch.Tensor) -> torch.Tensor:
         """The photo of view ``index`` [H, W, 3]; with masks, masked-out pixels take the background colour."""
-        image = self.dataset.images[index]
-        if self.dataset.masks is None:
-            return image
-        m = self.dataset.masks[index][..., None]
-        return image * m + background * (1.0 - m)
+        return self._masked(index, self.dataset.images[index], background)
 
     def reference(self, index: int, background: torch.Tensor) -> torch.Tensor:
         """What a render of view ``index`` is judged against [H, W, 3]: the clean image when the scene has one
-        (weather-degraded datasets), else the photo."""
-        if self.dataset.clean_images is None:
-            return self.target(index, background)
-        image = self.dataset.clean_images[index]
+        (weather-degraded datasets), else the photo; masked like `target`."""
+        clean = self.dataset.clean_images
+        return self._masked(index, self.dataset.images[index] if clean is None else clean[index], background)
+
+    def _masked(self, index: int, image: torch.Tensor, background: torch.Tensor) -> torch.Tensor:
+        """``image`` [H, W, 3] with view ``index``'s masked-out pixels set to ``background`` (no masks: as is)."""
         if self.dataset.masks is None:
             return image
         m = self.dataset.masks[index][..., None]
