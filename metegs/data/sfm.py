@@ -1,0 +1,282 @@
+"""Structure from motion with pycolmap: a folder of photos -> a COLMAP dataset metegs trains on.
+
+The pipeline is COLMAP's standard one: SIFT feature extraction, exhaustive or sequential matching with
+geometric verification, incremental mapping. The result is written in the layout the ``colmap`` parser
+reads (``<output>/images/``, ``<output>/sparse/0/``) plus ``<output>/process_images.json`` (options,
+registered and unregistered views, reprojection error, timings). Everything is built in a hidden
+folder next to ``<output>`` and renamed into place at the end, so an interrupted run leaves nothing
+half-written.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import cv2
+import numpy as np
+
+from metegs.errors import ConfigError, DataError
+from metegs.synth.writers import staged_output
+
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp")
+"""File types taken from the photo folder (case-insensitive)."""
+
+EXHAUSTIVE_LIMIT = 200
+"""With ``matcher="auto"``, folders up to this many photos are matched exhaustively, larger ones sequentially."""
+
+
+@dataclass
+class SfmOptions:
+    """Options of `run_sfm` (the CLI flags of ``metegs-process-images``)."""
+
+    matcher: Literal["auto", "exhaustive", "sequential"] = "auto"
+    """Pairs to match: every pair, or neighbours in file-name order (video frames); auto picks by count."""
+    max_image_size: int = 1600
+    """Longest side (px) at which features are extracted; 0 keeps the photos' size."""
+    max_features: int = 8192
+    """SIFT features kept per photo."""
+    accurate_features: bool = False
+    """SIFT with affine shape and domain-size pooling plus guided matching: 2-3x slower, registers more
+    views of weakly textured or turning objects."""
+    min_inliers: int = 30
+    """Verified matches needed to register a view (COLMAP's abs_pose_min_num_inliers; the other mapper
+    thresholds scale with it). Lower it (e.g. 15) for hard scenes: more views, more risk of a wrong pose."""
+    camera_model: str = "SIMPLE_RADIAL"
+    """COLMAP camera model (e.g. PINHOLE, SIMPLE_RADIAL, OPENCV); the colmap parser undistorts the others."""
+    single_camera: bool = True
+    """All photos share one camera (same lens and zoom); turn off for mixed cameras."""
+    sequential_overlap: int = 10
+    """With the sequential matcher, each photo is matched with this many following ones."""
+    min_registered: int = 3
+    """Fewer registered views than this is an error."""
+    num_threads: int = -1
+    """CPU threads for COLMAP (-1: all)."""
+    seed: int = 0
+    """Random seed of the mapper (RANSAC, initial pair), for reproducible poses."""
+
+
+@dataclass
+class SfmResult:
+    """What `run_sfm` produced (also written to ``process_images.json``)."""
+
+    output: str
+    num_images: int
+    registered: list[str]
+    unregistered: list[str]
+    num_points: int
+    mean_reprojection_error_px: float
+    other_models: list[int] = field(default_factory=list)
+    """Registered-view counts of the smaller models COLMAP also built (not written)."""
+    timings_s: dict[str, float] = field(default_factory=dict)
+    options: dict = field(default_factory=dict)
+
+
+StageCallback = Callable[[str, int, int], None]
+"""``callback(stage, done, total)``: progress of "extract", "match" and "map"."""
+
+
+def list_photos(folder: Path) -> list[str]:
+    """Sorted names of the readable photos directly in ``folder``; a clear error when there are none."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise DataError(folder, "photo folder does not exist")
+    names = sorted(p.name for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+    if not names:
+        raise DataError(folder, f"no photos found (looked for {', '.join(IMAGE_SUFFIXES)})")
+    unreadable = [n for n in names if not cv2.haveImageReader(str(folder / n))]
+    if unreadable:
+        raise DataError(folder / unreadable[0], f"not a readable image ({len(unreadable)} unreadable in the folder)")
+    return names
+
+
+def stage_masks(masks: Path, names: list[str], dst: Path) -> None:
+    """Masks (white = keep) matched to ``names`` by file stem -> COLMAP's ``dst/<name>.png`` (0 = ignore)."""
+    masks = Path(masks)
+    if not masks.is_dir():
+        raise DataError(masks, "mask folder does not exist")
+    by_stem = {p.stem: p for p in masks.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES}
+    missing = [n for n in names if Path(n).stem not in by_stem]
+    if missing:
+        raise DataError(
+            masks, f"no mask for {len(missing)} photo(s), e.g. {missing[0]} (masks are matched by file stem)"
+        )
+    dst.mkdir(parents=True)
+    for name in names:
+        mask = cv2.imread(str(by_stem[Path(name).stem]), cv2.IMREAD_GRAYSCALE)
+        if mask is None:
+            raise DataError(by_stem[Path(name).stem], "not a readable mask image")
+        cv2.imwrite(str(dst / f"{name}.png"), np.where(mask > 127, 255, 0).astype(np.uint8))
+
+
+def _pycolmap():
+    try:
+        import pycolmap
+    except ImportError as exc:  # pragma: no cover - pycolmap is a dependency
+        raise ConfigError("metegs-process-images needs pycolmap (pip install pycolmap)") from exc
+    return pycolmap
+
+
+def _quiet(pycolmap) -> None:
+    """Keep COLMAP's own log to warnings and errors: progress is shown by the caller."""
+    pycolmap.logging.minloglevel = 1
+
+
+def _extract(
+    pycolmap, db: Path, images: Path, names: list[str], masks: Path | None, opts: SfmOptions, progress: StageCallback
+) -> None:
+    """SIFT features of every photo into ``db`` (none where ``masks`` are black), in chunks to show progress."""
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = opts.camera_model
+    if masks is not None:
+        reader.mask_path = str(masks)
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.max_image_size = opts.max_image_size if opts.max_image_size > 0 else -1
+    extraction.num_threads = opts.num_threads
+    extraction.sift.max_num_features = opts.max_features
+    extraction.sift.estimate_affine_shape = opts.accurate_features
+    extraction.sift.domain_size_pooling = opts.accurate_features
+    mode = pycolmap.CameraMode.SINGLE if opts.single_camera else pycolmap.CameraMode.PER_IMAGE
+    chunk = 8
+    for start in range(0, len(names), chunk):
+        pycolmap.extract_features(
+            db,
+            images,
+            image_names=names[start : start + chunk],
+            camera_mode=mode,
+            reader_options=reader,
+            extraction_options=extraction,
+            device=pycolmap.Device.cpu,
+        )
+        if opts.single_camera and start == 0:
+            reader.existing_camera_id = 1  # later chunks share the first chunk's camera
+        progress("extract", min(start + chunk, len(names)), len(names))
+
+
+def _match(pycolmap, db: Path, count: int, opts: SfmOptions, progress: StageCallback) -> str:
+    """Match feature pairs with geometric verification; returns the matcher used."""
+    matcher = opts.matcher
+    if matcher == "auto":
+        matcher = "exhaustive" if count <= EXHAUSTIVE_LIMIT else "sequential"
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = opts.num_threads
+    matching.guided_matching = opts.accurate_features
+    progress("match", 0, 1)
+    if matcher == "exhaustive":
+        pycolmap.match_exhaustive(db, matching_options=matching, device=pycolmap.Device.cpu)
+    else:
+        pairing = pycolmap.SequentialPairingOptions()
+        pairing.overlap = opts.sequential_overlap
+        pycolmap.match_sequential(db, matching_options=matching, pairing_options=pairing, device=pycolmap.Device.cpu)
+    progress("match", 1, 1)
+    return matcher
+
+
+def _map(pycolmap, db: Path, images: Path, sparse: Path, count: int, opts: SfmOptions, progress: StageCallback):
+    """Incremental mapping; returns the reconstructions COLMAP built, largest first."""
+    mapping = pycolmap.IncrementalPipelineOptions()
+    mapping.num_threads = opts.num_threads
+    mapping.random_seed = opts.seed
+    relax = opts.min_inliers / 30.0  # relative to COLMAP's defaults
+    mapping.min_num_matches = min(15, opts.min_inliers)
+    mapping.mapper.abs_pose_min_num_inliers = opts.min_inliers
+    mapping.mapper.abs_pose_min_inlier_ratio = min(0.25, 0.25 * relax)
+    mapping.mapper.init_min_num_inliers = max(30, min(100, round(100 * relax)))
+    registered = [0]
+
+    def initial_pair() -> None:
+        registered[0] = 2
+        progress("map", 2, count)
+
+    def next_image() -> None:
+        registered[0] += 1
+        progress("map", min(registered[0], count), count)
+
+    sparse.mkdir(parents=True, exist_ok=True)
+    models = pycolmap.incremental_mapping(
+        db, images, sparse, options=mapping, initial_image_pair_callback=initial_pair, next_image_callback=next_image
+    )
+    return sorted(models.values(), key=lambda rec: rec.num_reg_images(), reverse=True)
+
+
+def run_sfm(
+    images: Path,
+    output: Path,
+    opts: SfmOptions | None = None,
+    overwrite: bool = False,
+    progress: StageCallback | None = None,
+    masks: Path | None = None,
+) -> SfmResult:
+    """Photos in ``images`` -> COLMAP dataset at ``output`` (``images/``, ``sparse/0/``, ``process_images.json``).
+
+    ``masks``: a folder of masks matched to the photos by file stem (white = use, black = ignore), e.g. to
+    keep SfM on an object that turns on a turntable in front of a static background.
+    """
+    opts = opts or SfmOptions()
+    progress = progress or (lambda stage, done, total: None)
+    pycolmap = _pycolmap()
+    _quiet(pycolmap)
+    images = Path(images)
+    output = Path(output)
+    if images.resolve() == output.resolve() or output.resolve() in images.resolve().parents:
+        raise ConfigError(f"{output}: the output must not contain the photo folder {images}")
+    if output.exists() and not overwrite:
+        raise ConfigError(f"{output} exists; choose another output folder or pass --overwrite")
+    names = list_photos(images)
+    timings: dict[str, float] = {}
+    with staged_output(output, overwrite=overwrite) as tmp:
+        staged_images = tmp / "images"
+        staged_images.mkdir()
+        for name in names:
+            shutil.copy2(images / name, staged_images / name)
+        staged_masks = None
+        if masks is not None:
+            staged_masks = tmp / "colmap_masks"
+            stage_masks(masks, names, staged_masks)
+        db = tmp / "database.db"
+        t0 = time.perf_counter()
+        _extract(pycolmap, db, staged_images, names, staged_masks, opts, progress)
+        timings["extract"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        matcher = _match(pycolmap, db, len(names), opts, progress)
+        timings["match"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        work = tmp / "mapper"
+        models = _map(pycolmap, db, staged_images, work, len(names), opts, progress)
+        timings["map"] = time.perf_counter() - t0
+        best = models[0] if models else None
+        registered = sorted(best.images[i].name for i in best.reg_image_ids()) if best else []
+        progress("map", len(registered), len(names))
+        if len(registered) < opts.min_registered:
+            raise DataError(
+                images,
+                f"only {len(registered)} of {len(names)} photos could be registered "
+                f"(need {opts.min_registered}); photos need more overlap and texture — try "
+                "--accurate-features, --min-inliers 15, --masks for a turning object, "
+                "or --no-single-camera for mixed cameras",
+            )
+        final = tmp / "sparse" / "0"
+        final.mkdir(parents=True)
+        best.write(final)
+        shutil.rmtree(work)
+        if staged_masks is not None:
+            shutil.rmtree(staged_masks)
+        db.unlink()
+        result = SfmResult(
+            output=str(output),
+            num_images=len(names),
+            registered=registered,
+            unregistered=sorted(set(names) - set(registered)),
+            num_points=best.num_points3D(),
+            mean_reprojection_error_px=float(best.compute_mean_reprojection_error()),
+            other_models=[rec.num_reg_images() for rec in models[1:]],
+            timings_s={k: round(v, 2) for k, v in timings.items()},
+            options={**asdict(opts), "matcher": matcher, "masks": None if masks is None else str(masks)},
+        )
+        (tmp / "process_images.json").write_text(json.dumps(asdict(result), indent=2) + "\n")
+    return result
