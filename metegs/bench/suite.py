@@ -359,11 +359,15 @@ class SuiteRunner:
             for m in (m for m in methods if m.photos == "clean"):
                 d = self.output / scene.name / "clean" / m.name
                 lines.append(f"{scene.name} / clean / {m.name}: {d} ({state(d)})")
-            for spec in self.condition_specs:
+            for spec in self.conditions_of(scene):
                 for m in (m for m in methods if m.photos != "clean" and m.runs_on(scene.name, spec.name)):
                     d = self.output / scene.name / spec.name / m.name
                     lines.append(f"{scene.name} / {spec.name} / {m.name}: {d} ({state(d)})")
         return lines
+
+    def conditions_of(self, scene: SceneSpec) -> list:
+        """The suite's (selected) condition specs that run on ``scene``."""
+        return [c for c in self.condition_specs if scene.conditions is None or c.name in scene.conditions]
 
     def run(self) -> dict:
         from metegs.bench.report import write_report
@@ -393,7 +397,7 @@ class SuiteRunner:
             if rec["status"] != "failed" and depth_run is None:
                 depth_run = run_dir
         needs_depth = not scene.in_memory and any(
-            m.runs_on(scene.name, c.name) for m in weather_methods for c in self.condition_specs
+            m.runs_on(scene.name, c.name) for m in weather_methods for c in self.conditions_of(scene)
         )
         if needs_depth and depth_run is None:
             helper = MethodSpec(name="_depth-3dgs", method="3dgs", photos="clean")
@@ -403,7 +407,7 @@ class SuiteRunner:
             )
             depth_run = run_dir if rec["status"] != "failed" else None
         dataset = self.dataset_config(scene)
-        for spec in self.condition_specs:
+        for spec in self.conditions_of(scene):
             here = [m for m in weather_methods if m.runs_on(scene.name, spec.name)]
             if not here:
                 continue

@@ -55,6 +55,8 @@ class SceneSpec:
     """Overrides of every run on this scene (after the suite's ``train``)."""
     synth: dict[str, Any] = field(default_factory=dict)
     """Extra `metegs-synth` options for scenes from files (e.g. ``assumed_depth_m``, ``metres_per_unit``)."""
+    conditions: list[str] | None = None
+    """Only these conditions on this scene (None: all)."""
 
     @property
     def in_memory(self) -> bool:
@@ -178,6 +180,11 @@ class SuiteConfig:
             raise ConfigError(f"{self.where}: methods on degraded or restored photos need at least one condition")
         if not 0 <= self.eval_every <= 1:
             raise ConfigError(f"{self.where}: eval_every must be a fraction in [0, 1], got {self.eval_every}")
+        condition_names = {c.name for c in self.conditions}
+        for scene in self.scenes:
+            missing = sorted(set(scene.conditions or ()) - condition_names)
+            if missing:
+                raise ConfigError(f"{self.where}: scene {scene.name!r} names unknown condition(s) {missing}")
         method_names = {m.name for m in self.methods}
         for check in self.checks:
             missing = sorted({n for a, _, b in check.chain() for n in (a, b)} - method_names)

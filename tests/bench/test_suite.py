@@ -23,7 +23,9 @@ def test_the_shipped_suites_parse():
     assert len(default.conditions) == 8 and {c.kind for c in default.conditions} == {"rain", "fog", "rain+fog"}
     names = {m.name for m in default.methods}
     assert {"3dgs", "3dgs-clean", "restore+3dgs", "metegs-full", "metegs-blind", "abl-a", "abl-d"} <= names
-    assert default.scenes[1].data.name == "ethiopianhead-llff"
+    assert default.scenes[1].data.name == "ethiopianhead-llff" and default.scenes[1].conditions
+    full = load_suite(REPO / "configs/bench/full.yaml")
+    assert full.train["max_steps"] > default.train["max_steps"] and all(s.conditions is None for s in full.scenes)
     quick = load_suite(REPO / "configs/bench/quick.yaml")
     assert quick.train["max_steps"] <= 100 and len(quick.conditions) == 1
     assert quick.checks[0].chain() == [("3dgs-clean", ">=", "metegs-full"), ("metegs-full", ">", "3dgs")]
@@ -52,6 +54,7 @@ def _minimal(**extra):
         ({"checks": [{"expect": "3dgs > 3dgs", "metrics": ["mse"]}]}, "unknown metric"),
         ({"eval_every": 2}, "eval_every"),
         ({"conditions": [], "methods": [{"name": "3dgs"}]}, "at least one condition"),
+        ({"scenes": [{"name": "synthetic", "conditions": ["nope"]}]}, "names unknown condition"),
     ],
 )
 def test_suite_file_errors_are_clear(change, message):
@@ -146,6 +149,12 @@ def test_cli_takes_a_suite_file_positionally(monkeypatch, capsys, tmp_path):
     bench.entrypoint()
     out = capsys.readouterr().out
     assert "synthetic / f / 3dgs" in out and "to run" in out
+    two = _minimal(output=str(tmp_path / "out2"), scenes=[{"name": "synthetic", "conditions": ["g"]}])
+    two["conditions"].append({"name": "g", "kind": "fog", "fog": {"visibility_m": 500, "explicit": True}})
+    path.write_text(yaml.safe_dump(two))
+    bench.entrypoint()
+    out = capsys.readouterr().out
+    assert "synthetic / g / 3dgs" in out and "synthetic / f / 3dgs" not in out  # the scene's own conditions
     monkeypatch.setattr(sys, "argv", ["metegs-bench", "suite", "--quick", "--dry-run", "--output", str(tmp_path / "q")])
     bench.entrypoint()
     assert "synthetic / fog-200 / metegs-full" in capsys.readouterr().out
