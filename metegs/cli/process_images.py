@@ -3,7 +3,7 @@
     metegs-process-images photos/ datasets/my-scene
     metegs-train 3dgs --data datasets/my-scene
 
-Writes ``images/`` (copies of the photos), ``sparse/0/`` (the largest model COLMAP built) and
+Writes ``images/`` (the photos, undistorted unless --no-undistort), ``sparse/0/`` (the largest model COLMAP built) and
 ``process_images.json`` (registered views, reprojection error, timings, options).
 """
 

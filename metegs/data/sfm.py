@@ -49,6 +49,9 @@ class SfmOptions:
     thresholds scale with it). Lower it (e.g. 15) for hard scenes: more views, more risk of a wrong pose."""
     camera_model: str = "SIMPLE_RADIAL"
     """COLMAP camera model (e.g. PINHOLE, SIMPLE_RADIAL, OPENCV); the colmap parser undistorts the others."""
+    undistort: bool = True
+    """Write undistorted photos with a PINHOLE model (COLMAP's image undistorter) so that every tool,
+    metegs-synth included, takes them as they are; off keeps the photos and the fitted distortion."""
     single_camera: bool = True
     """All photos share one camera (same lens and zoom); turn off for mixed cameras."""
     sequential_overlap: int = 10
@@ -204,6 +207,23 @@ def _map(pycolmap, db: Path, images: Path, sparse: Path, count: int, opts: SfmOp
     return sorted(models.values(), key=lambda rec: rec.num_reg_images(), reverse=True)
 
 
+def _is_pinhole(rec) -> bool:
+    return all(cam.model.name in ("PINHOLE", "SIMPLE_PINHOLE") for cam in rec.cameras.values())
+
+
+def _undistort(pycolmap, rec, model: Path, images: Path, scratch: Path, final: Path) -> None:
+    """COLMAP's image undistorter: ``images`` are replaced by undistorted copies and ``final`` gets the
+    PINHOLE model that goes with them."""
+    model.mkdir(parents=True)
+    rec.write(model)
+    pycolmap.undistort_images(scratch, model, images)
+    shutil.rmtree(images)
+    (scratch / "images").rename(images)
+    for file in (scratch / "sparse").iterdir():
+        file.rename(final / file.name)
+    shutil.rmtree(scratch)
+
+
 def run_sfm(
     images: Path,
     output: Path,
@@ -262,7 +282,12 @@ def run_sfm(
             )
         final = tmp / "sparse" / "0"
         final.mkdir(parents=True)
-        best.write(final)
+        if opts.undistort and not _is_pinhole(best):
+            t0 = time.perf_counter()
+            _undistort(pycolmap, best, work / "best", staged_images, tmp / "undistorted", final)
+            timings["undistort"] = time.perf_counter() - t0
+        else:
+            best.write(final)
         shutil.rmtree(work)
         if staged_masks is not None:
             shutil.rmtree(staged_masks)

@@ -61,6 +61,11 @@ def test_registers_the_photos_and_writes_a_colmap_dataset(processed):
     assert result.mean_reprojection_error_px < 1.5
     assert sorted(p.name for p in (out / "images").iterdir()) == list_photos(photos)
     assert (out / "sparse" / "0").is_dir() and not (out / "database.db").exists()
+    import pycolmap
+
+    rec = pycolmap.Reconstruction(out / "sparse" / "0")  # undistorted: any tool takes the photos as they are
+    assert {cam.model.name for cam in rec.cameras.values()} == {"PINHOLE"}
+    assert "undistort" in result.timings_s
     record = json.loads((out / "process_images.json").read_text())
     assert record["registered"] == result.registered and record["options"]["matcher"] == "exhaustive"
     assert record["options"]["masks"] == str(SCENE / "masks_8")

@@ -1,0 +1,117 @@
+"""Training throughput with the live viewer open in a browser, as a ratio of throughput without it.
+
+    python benchmarks/viewer_throughput.py                    # 2 threads, 3 repetitions, synthetic 160x120
+    python benchmarks/viewer_throughput.py --threads 1 --steps 300 --repeats 5 --json out.json
+
+Each repetition trains `3dgs` on the built-in synthetic scene twice in this process, once alone and once
+with `metegs-train --viewer`'s live viewer attached and a headless Chromium showing it (the user watching
+the clean render while it trains). Steps/s are measured from step 20 on (after the page's start-up), and
+the table reports the median of each mode and the ratio. Needs Chromium and chromedriver (Debian:
+``apt-get install chromium chromium-driver``) and selenium.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import statistics
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import torch
+from rich.console import Console
+from rich.table import Table
+
+from metegs.data.config import DatasetConfig, SyntheticSceneConfig
+from metegs.registry import registry
+
+WARMUP_STEPS = 20
+"""Steps not timed (Gaussian growth starts, caches fill, the page settles)."""
+
+
+def browser():
+    """A headless Chromium driven by selenium."""
+    from selenium import webdriver
+    from selenium.webdriver.chrome.options import Options
+    from selenium.webdriver.chrome.service import Service
+
+    options = Options()
+    for arg in ("--headless=new", "--no-sandbox", "--disable-gpu", "--window-size=1280,800", "--disable-dev-shm-usage"):
+        options.add_argument(arg)
+    binary = shutil.which("chromium") or shutil.which("chromium-browser") or shutil.which("google-chrome")
+    if binary:
+        options.binary_location = binary
+    return webdriver.Chrome(service=Service(shutil.which("chromedriver")), options=options)
+
+
+def train_rate(steps: int, threads: int, with_viewer: bool, out: Path, settle_s: float) -> dict:
+    """Steps/s of one 3dgs run after the warm-up, with or without the viewer and a browser on it."""
+    base = registry("method").get("3dgs")()
+    config = replace(
+        base, max_steps=steps, output_dir=out, experiment_name="viewer" if with_viewer else "alone", progress=False,
+        dataset=DatasetConfig(synthetic=SyntheticSceneConfig()), eval_every=0.0, checkpoint_every=0,
+        save_renders=False, device="cpu", threads=threads,
+    )
+    trainer = config.setup()
+    stamps: list[tuple[int, float]] = []
+    trainer.step_hooks.append(lambda tr, stats: stamps.append((tr.step, time.perf_counter())))
+    viewer = driver = None
+    if with_viewer:
+        from metegs.viewer import Viewer, ViewerConfig
+
+        viewer = Viewer(trainer, ViewerConfig(port=0), live=True)
+        driver = browser()
+        driver.get(viewer.url)
+        if not viewer.wait_for_frames(1, 60):
+            raise RuntimeError("the browser showed no frame within 60 s")
+        time.sleep(settle_s)  # the page's one-off start-up is not a training-time cost
+    try:
+        trainer.train()
+    finally:
+        frames = None if viewer is None else viewer.stats.count
+        if viewer is not None:
+            viewer.training_finished()
+            driver.quit()
+            viewer.close()
+    (s0, t0), (s1, t1) = next(p for p in stamps if p[0] >= WARMUP_STEPS), stamps[-1]
+    return {"viewer": with_viewer, "it_s": (s1 - s0) / (t1 - t0), "frames": frames, "gaussians": len(trainer.model)}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--threads", type=int, default=2, help="torch threads of training (0: torch's default)")
+    parser.add_argument("--steps", type=int, default=300, help="training steps per run")
+    parser.add_argument("--repeats", type=int, default=3, help="repetitions of each mode (alternating)")
+    parser.add_argument("--settle", type=float, default=10.0, help="seconds for the page to start before training")
+    parser.add_argument("--json", type=Path, default=None, help="also write the records and the summary here")
+    args = parser.parse_args()
+    console = Console()
+    records = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for rep in range(args.repeats):
+            for with_viewer in (False, True):
+                rec = train_rate(args.steps, args.threads, with_viewer, Path(tmp), args.settle)
+                records.append({**rec, "repeat": rep})
+                console.print(f"repeat {rep}: viewer={with_viewer} {rec['it_s']:.2f} it/s, frames {rec['frames']}")
+    alone = statistics.median(r["it_s"] for r in records if not r["viewer"])
+    watched = statistics.median(r["it_s"] for r in records if r["viewer"])
+    summary = {
+        "threads": args.threads, "torch_threads": torch.get_num_threads(), "steps": args.steps,
+        "alone_it_s": alone, "viewer_it_s": watched, "ratio": watched / alone, "loss_percent": 100 * (1 - watched / alone),
+    }
+    table = Table(title=f"3dgs on the synthetic scene, {args.threads} thread(s), median of {args.repeats}")
+    for col in ("mode", "it/s", "ratio"):
+        table.add_column(col, justify="right")
+    table.add_row("no viewer", f"{alone:.2f}", "1.00")
+    table.add_row("viewer + browser", f"{watched:.2f}", f"{watched / alone:.2f}")
+    console.print(table)
+    console.print(f"throughput loss with the viewer open: {summary['loss_percent']:.1f} %")
+    if args.json is not None:
+        args.json.write_text(json.dumps({"records": records, "summary": summary}, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
