@@ -28,10 +28,10 @@ RGB_WAVELENGTHS_NM = (610.0, 550.0, 465.0)
 
 @dataclass(frozen=True)
 class CameraSpec:
-    """The camera settings the rain appearance depends on (from EXIF or the dataset's intrinsics)."""
+    """The camera settings the rain appearance depends on (the dataset's intrinsics and exposure)."""
 
     exposure_s: float = 1.0 / 60.0
-    """Exposure time T, s (EXIF ``ExposureTime``): sets streak length and opacity (Garg & Nayar, §2.4)."""
+    """Exposure time T, s (the photos' EXIF ``ExposureTime``, as given): sets streak length and opacity (Garg & Nayar, §2.4)."""
     focal_px: float = 1000.0
     """Focal length in pixels f_px (sets the depth at which a drop becomes sub-pixel, §2.4)."""
     fov_x_deg: float = 60.0

@@ -25,6 +25,12 @@ class ConditionsConfig:
     """Met record (any metegs-meteo reader, detected); None: the storm record shipped with metegs."""
     time: str | None = None
     """Capture time, ISO 8601 (e.g. 2013-08-11T07:40Z); None: the shipped record's default hour."""
+    reader: str | None = None
+    """Reader of the record (csv, metar, ghcnh, isd, open-meteo); None: detected from the file."""
+    set: tuple[str, ...] = ()
+    """Reader options as KEY=VALUE (e.g. year=2024 month=7 for METAR, precip_column=RAIN for a csv)."""
+    station: str | None = None
+    """Station, for records holding several."""
     window: str = "1h"
     """Aggregation window around the capture time."""
     agg: Literal["mean", "max", "min"] = "max"
@@ -38,7 +44,7 @@ class ConditionsConfig:
     wind_dir_deg: float | None = None
     """Explicit direction the wind blows from, degrees clockwise from north (with --conditions.precip-mm-h)."""
     exposure_s: float | None = None
-    """Exposure time, s; None: the cameras' (EXIF), else 1/60 s."""
+    """Exposure time, s; None: the dataset's (the nerfstudio ``metegs`` block), else 1/60 s."""
     metres_per_unit: float | None = None
     """Metres per scene unit for the weather; None: the scene's own scale (metric scenes), else 1."""
     capture_width_px: int = 1920
@@ -105,9 +111,22 @@ def theta_for_cameras(config: ConditionsConfig, cameras: Cameras, metres_per_uni
     else:
         if config.wind_speed_m_s is not None or config.wind_dir_deg is not None:
             raise ConfigError("--conditions.wind-* go with --conditions.precip-mm-h (explicit values), not a record")
+        from metegs.cli.meteo import parse_options
+
         times = [config.time] if config.time else None
+        if config.record is None and (config.reader is not None or config.set or config.station is not None):
+            raise ConfigError("--conditions.reader/--conditions.set/--conditions.station need --conditions.record")
         plan = plan_from_record(
-            1, spec, config.record, times, window=config.window, agg=config.agg, visibility_m=config.visibility_m
+            1,
+            spec,
+            config.record,
+            times,
+            reader=config.reader,
+            options=parse_options(config.set),
+            window=config.window,
+            agg=config.agg,
+            station=config.station,
+            visibility_m=config.visibility_m,
         )
     return plan.thetas[0]
 
