@@ -140,16 +140,8 @@ def test_every_extreme_at_once_in_one_scene(backend):
     assert out.num_intersections > 0
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="cpu backend: ProjectShade backward (metegs/render/csrc/project.cpp) returns non-finite means/quats/"
-    "scales gradients when the 2D covariance determinant nears the float32 range; the torch reference is finite",
-)
-def test_cpu_projection_gradients_stay_finite_near_float32_overflow():
-    """Found by a 1000x-learning-rate run: a Gaussian with scale ~7e8 at ~10 m (det of its 2D covariance
-    ~2e38) gets NaN gradients from the cpu backend, finite ones (zero-ish) from torch."""
-    if not backend_usable("cpu", "cpu"):
-        pytest.skip("cpu backend unavailable")
+def _overflow_camera():
+    """The 64x48 view of the 1000x-learning-rate run that found the float32-overflow bug below."""
     from metegs.cameras import Cameras
 
     c2w = torch.tensor(
@@ -160,7 +152,16 @@ def test_cpu_projection_gradients_stay_finite_near_float32_overflow():
             [0.0, 0.0, 0.0, 1.0],
         ]
     )
-    cam = Cameras.create(c2w[None], 55.4256, 55.4256, 32.0, 24.0, 64, 48)
+    return Cameras.create(c2w[None], 55.4256, 55.4256, 32.0, 24.0, 64, 48)
+
+
+def test_cpu_projection_gradients_stay_finite_near_float32_overflow():
+    """Found by a 1000x-learning-rate run: a Gaussian with scale ~7e8 at ~10 m (det of its 2D covariance
+    ~3e38) got NaN gradients from the cpu backend (a*a / det^2 = inf / inf in the conic backward), finite ones
+    (zero: its alpha is saturated) from torch."""
+    if not backend_usable("cpu", "cpu"):
+        pytest.skip("cpu backend unavailable")
+    cam = _overflow_camera()
     sh = torch.zeros(1, 16, 3)
     sh[0, 0] = torch.tensor([8.9, 9.2, 8.36])
     g = GaussianSet(
@@ -170,8 +171,67 @@ def test_cpu_projection_gradients_stay_finite_near_float32_overflow():
         torch.tensor([1.0]),
         sh,
     )
+    grads = {}
     for name in ("torch", "cpu"):
         params = [t.clone().requires_grad_(True) for t in (g.means, g.quats, g.scales, g.opacities, g.sh)]
         out = registry("rasterizer").get(name)().render(GaussianSet(*params), cam, RenderSettings())
+        assert out.num_intersections > 0, f"{name}: the huge Gaussian was culled"
         out.rgb.sum().backward()
         assert all(torch.isfinite(p.grad).all() for p in params), f"{name}: non-finite gradients"
+        grads[name] = [p.grad for p in params]
+    for got, ref in zip(grads["cpu"], grads["torch"], strict=True):
+        torch.testing.assert_close(got, ref, rtol=1e-4, atol=1e-3)
+
+
+def test_cpu_projection_gradients_are_accurate_near_float32_overflow():
+    """ProjectShade alone, with non-zero conic cotangents, on Gaussians whose float32 2D covariance entries
+    (~2e19) square past float32's range while their determinant (~1e38) does not: the float32 cpu gradients
+    match the float64 torch reference. (The float32 torch reference itself underflows here: its quats and
+    scales gradients, ~1e-28, are not compared with.)"""
+    if not backend_usable("cpu", "cpu"):
+        pytest.skip("cpu backend unavailable")
+    from metegs.render.cpu_backend import ProjectShade
+    from metegs.render.projection import project_gaussians
+
+    cam = _overflow_camera()
+    W, H = 64, 48
+    f64 = torch.float64
+    means = torch.tensor([[8.4528, -2.3992, 4.1480]], dtype=f64).repeat(4, 1)
+    quats = torch.tensor(
+        [[1.0, 0.0, 3.7874, -3.7876], [0.3, 0.5, -0.2, 0.7], [1.0, 0.0, 0.0, 0.0], [0.9, 0.1, 0.4, -0.2]], dtype=f64
+    )
+    scales = torch.tensor(
+        [[6.93e8, 6.93e8, 6.93e8], [6.9e8, 4e8, 1.5e8], [8e8, 2e8, 5e8], [1.2e9, 1e6, 3e8]], dtype=f64
+    )
+    opacities = torch.full((4,), 0.5, dtype=f64)
+    cot = [
+        torch.randn(s, dtype=f64, generator=torch.Generator().manual_seed(i))
+        for i, s in enumerate([(4, 2), (4, 3), (4,)])
+    ]
+
+    def run(dt, fn):
+        viewmat, K = cam.world_to_cameras()[0].to(dt), cam.intrinsics()[0].to(dt)
+        params = [t.to(dt).requires_grad_(True) for t in (means, quats, scales)]
+        outs = fn(*params, viewmat, K, dt)
+        sum((o * c.to(dt)).sum() for o, c in zip(outs[:3], cot)).backward()
+        return [o.detach() for o in outs], [p.grad for p in params]
+
+    def ours(m, q, s, viewmat, K, dt):
+        sh = torch.zeros(4, 1, 3, dtype=dt)
+        campos = cam.centers[0].to(dt)
+        outs = ProjectShade.apply(m, q, s, opacities.to(dt), sh, viewmat, K, campos, W, H, 0.01, 1e10, 0.3, 0)
+        return outs[0], outs[1], outs[2], outs[4]
+
+    def reference(m, q, s, viewmat, K, dt):
+        p = project_gaussians(m, q, s, viewmat, K, W, H, opacities=opacities.to(dt))
+        return p.means2d, p.conics, p.depths, p.radii
+
+    (out, grads), (ref, ref_grads) = run(torch.float32, ours), run(f64, reference)
+    assert (ref[3] > 0).all() and (out[3] > 0).all(), "the huge Gaussians must be drawn"
+    torch.testing.assert_close(out[1].double(), ref[1], rtol=1e-5, atol=0)
+    for name, got, want in zip(("means", "quats", "scales"), grads, ref_grads, strict=True):
+        assert torch.isfinite(got).all(), f"non-finite d/d{name}"
+        scale = want.abs().max()
+        torch.testing.assert_close(
+            got.double() / scale, want / scale, rtol=1e-4, atol=1e-5, msg=lambda m, n=name: f"{n}: {m}"
+        )

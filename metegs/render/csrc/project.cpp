@@ -390,12 +390,19 @@ std::vector<at::Tensor> project_backward(at::Tensor means, at::Tensor quats, at:
           gp[0] += cam.fx / tz * gm2[2 * g];
           gp[1] += cam.fy / tz * gm2[2 * g + 1];
           T gtz = -cam.fx * P.p[0] / tz2 * gm2[2 * g] - cam.fy * P.p[1] / tz2 * gm2[2 * g + 1] + gde[g];
-          // conic (c/det, -b/det, a/det) -> (a, b, c)
-          const T A = gco[3 * g], B = gco[3 * g + 1], C = gco[3 * g + 2];
-          const T det = P.det, det2 = det * det, a = P.a, b = P.b, cc = P.c;
-          const T ga = A * (-cc * cc / det2) + B * (b * cc / det2) + C * (T(1) / det - a * cc / det2);
-          const T gb = A * (T(2) * b * cc / det2) + B * (-T(1) / det - T(2) * b * b / det2) + C * (T(2) * a * b / det2);
-          const T gcv = A * (T(1) / det - cc * a / det2) + B * (b * a / det2) + C * (-a * a / det2);
+          // conic (c/det, -b/det, a/det) -> (a, b, c), in double and written with the ratios a/det, b/det,
+          // c/det, 1/det (bounded by about 1/eps2d and 1/eps2d^2): the products a*a, a*c, b*b, c*c and det*det of
+          // the textbook form overflow (float32: det*det from det ~ 2e19, a*a near 3e38, giving inf/inf = NaN)
+          // for huge Gaussians whose forward is still finite. Same chain as the torch reference's autograd,
+          // d(x/det) = dx/det - (x/det)/det d(det) with d(det) = c da + a dc - 2 b db, and the same det
+          // (the forward's, in T), so the normal regime is unchanged up to rounding.
+          const double A = gco[3 * g], B = gco[3 * g + 1], C = gco[3 * g + 2];
+          const double det = P.det, id = 1.0 / det, ia = double(P.a) / det, ib = double(P.b) / det,
+                       ic = double(P.c) / det;
+          const double ga_d = -A * (ic * ic) + B * (ib * ic) + C * (id - ia * ic);
+          const double gb_d = A * (2.0 * ib * ic) - B * (id + 2.0 * ib * ib) + C * (2.0 * ia * ib);
+          const double gc_d = A * (id - ic * ia) + B * (ib * ia) - C * (ia * ia);
+          const T ga = T(ga_d), gb = T(gb_d), gcv = T(gc_d);
           // cov2 = JW cov3 JW^T with dL/dcov2 = V (symmetric form: V01 = V10 = gb / 2)
           const T V[4] = {ga, T(0.5) * gb, T(0.5) * gb, gcv};
           // dL/dJW = 2 V JW cov3 ; dL/dcov3 = JW^T V JW
