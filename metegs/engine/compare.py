@@ -20,8 +20,22 @@ def baseline_config(config: TrainConfig) -> TrainConfig:
 
     base = registry("method").get("3dgs")()
     shared = (
-        "data", "parser", "output_dir", "max_steps", "seed", "backend", "device", "threads", "background",
-        "eval_every", "checkpoint_every", "save_renders", "lpips_net", "lpips_download", "progress", "dataset",
+        "data",
+        "parser",
+        "output_dir",
+        "max_steps",
+        "seed",
+        "backend",
+        "device",
+        "threads",
+        "background",
+        "eval_every",
+        "checkpoint_every",
+        "save_renders",
+        "lpips_net",
+        "lpips_download",
+        "progress",
+        "dataset",
     )
     return replace(base, **{k: getattr(config, k) for k in shared}, degrade="off", conditions=config.conditions)
 
@@ -43,8 +57,12 @@ def comparison_table(rows: dict[str, dict]) -> Table:
     for name, m in rows.items():
         lp = m.get("lpips")
         table.add_row(
-            name, f"{m['psnr']:.2f}", f"{m['ssim']:.4f}", "null" if lp is None else f"{lp:.4f}",
-            str(m["num_gaussians"]), f"{m['train_seconds']:.1f}",
+            name,
+            f"{m['psnr']:.2f}",
+            f"{m['ssim']:.4f}",
+            "null" if lp is None else f"{lp:.4f}",
+            str(m["num_gaussians"]),
+            f"{m['train_seconds']:.1f}",
         )
     return table
 

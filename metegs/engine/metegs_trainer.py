@@ -149,6 +149,16 @@ class MeteGSTrainer(Trainer):
             optimizers["weather"] = torch.optim.Adam(groups, eps=1e-15)
         return optimizers
 
+    def background(self, training: bool) -> torch.Tensor:
+        """[3] Where the clean scene is transparent a view looks into the distance, which the fog model shows as
+        its airlight A (the weather branch composites A there): with a fog model, clean renders and references
+        use A as background, so that blind training cannot leave the scene see-through. Else the configured one."""
+        for m in getattr(self, "weather_models", ()):
+            airlight = getattr(m, "airlight", None)
+            if isinstance(airlight, torch.Tensor):
+                return airlight.detach().to(self.device, torch.float32).clone()
+        return super().background(training)
+
     # --- one step ----------------------------------------------------------------------------------
     def render_weather(self, index: int, background: torch.Tensor, training: bool):
         """Weather-branch render of view ``index`` (GTN only while training) -> WeatherRender."""

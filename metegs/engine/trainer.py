@@ -61,7 +61,9 @@ class Trainer:
         self.decisions: dict[str, str] = {}
         """What the run chose to do or skip, and why (printed once, saved as decisions.json)."""
         self.theta: Theta | None = None
-        self.scene = scene if scene is not None else self.prepare_scene(parse_scene(config.data, config.parser, config.dataset))
+        self.scene = (
+            scene if scene is not None else self.prepare_scene(parse_scene(config.data, config.parser, config.dataset))
+        )
         self.dataset = Dataset(self.scene, config.dataset, device=self.device)
         if not self.dataset.train_indices:
             raise ConfigError("the scene has no training views")
@@ -124,10 +126,15 @@ class Trainer:
             raise ConfigError("--degrade needs the scene's images")
         theta = self.weather_theta(scene)
         degraded, _ = degrade_scene(
-            scene, theta, kinds="+".join(sorted(kinds, reverse=True)), seed=self.config.seed,
+            scene,
+            theta,
+            kinds="+".join(sorted(kinds, reverse=True)),
+            seed=self.config.seed,
             metres_per_unit=scene_metres_per_unit(self.config.conditions, scene.metric_scale),
         )
-        self.decide("degrade", f"{'+'.join(sorted(kinds, reverse=True))} synthesised on the clean views: {describe(theta)}")
+        self.decide(
+            "degrade", f"{'+'.join(sorted(kinds, reverse=True))} synthesised on the clean views: {describe(theta)}"
+        )
         return degraded
 
     def _default_run_dir(self) -> Path:

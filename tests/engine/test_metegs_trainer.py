@@ -50,7 +50,9 @@ def test_run_writes_clean_scene_side_by_sides_and_decisions(trained):
     saved = json.loads((run / "metrics.json").read_text())
     assert saved["reference"] == "clean" and saved["method"] == "metegs-full"
     decisions = json.loads((run / "decisions.json").read_text())
-    assert {"degrade", "weather rain-streaks", "weather fog-analytic", "gtn", "clean branch"} <= set(decisions["decisions"])
+    assert {"degrade", "weather rain-streaks", "weather fog-analytic", "gtn", "clean branch"} <= set(
+        decisions["decisions"]
+    )
     assert decisions["theta"]["rain"]["precip_mm_per_h"] == 20.0
 
 
@@ -84,6 +86,25 @@ def test_fog_parameters_learned_from_their_theta_start(trained):
     assert not torch.allclose(fog.beta_rgb.detach().cpu(), beta0.float(), rtol=1e-4)
 
 
+def test_clean_views_look_into_the_airlight_where_the_scene_is_transparent(trained):
+    """Blind training composites the fog's airlight behind the scene; clean renders and evaluation must too,
+    else a see-through scene looks dark (a 10 dB loss measured on light rain)."""
+    trainer, _ = trained
+    fog = next(m for m in trainer.weather_models if m.name == "fog-analytic")
+    for training in (True, False):
+        assert torch.equal(trainer.background(training), fog.airlight.detach().float())
+    i = trainer.dataset.test_indices[0]
+    seen, black = trainer.render(i), trainer.render(i, background=torch.zeros(3))  # the configured one is black
+    behind = (1.0 - black.alpha)[..., None] * fog.airlight.detach().float()
+    assert torch.allclose(seen.rgb - black.rgb, behind, atol=1e-5)
+
+
+def test_without_fog_the_configured_background_stays(tmp_path):
+    trainer = tiny_metegs(tmp_path, weather=("rain-streaks",), max_steps=1).setup()
+    assert not any(m.name == "fog-analytic" for m in trainer.weather_models)
+    assert torch.equal(trainer.background(False), torch.zeros(3))
+
+
 def test_resume_restores_weather_and_gtn(trained, tmp_path):
     trainer, _ = trained
     ckpt = trainer.run_dir / "checkpoints" / "step-000040.ckpt"
@@ -100,7 +121,10 @@ def test_resume_restores_weather_and_gtn(trained, tmp_path):
 
 def test_clear_weather_builds_no_weather_and_blind_mode_skips_the_clean_branch(tmp_path):
     config = tiny_metegs(
-        tmp_path, conditions=ConditionsConfig(precip_mm_h=0.0), clean_supervision=False, max_steps=2,
+        tmp_path,
+        conditions=ConditionsConfig(precip_mm_h=0.0),
+        clean_supervision=False,
+        max_steps=2,
         degrade="off",
     )
     trainer = config.setup()
