@@ -27,8 +27,9 @@ def test_the_shipped_suites_parse():
     full = load_suite(REPO / "configs/bench/full.yaml")
     assert full.train["max_steps"] > default.train["max_steps"] and all(s.conditions is None for s in full.scenes)
     quick = load_suite(REPO / "configs/bench/quick.yaml")
-    assert quick.train["max_steps"] <= 100 and len(quick.conditions) == 1
-    assert quick.checks[0].chain() == [("3dgs-clean", ">=", "metegs-full"), ("metegs-full", ">", "3dgs")]
+    assert quick.train["max_steps"] <= 300 and len(quick.conditions) == 1
+    assert quick.checks[0].chain() == [("3dgs-clean", ">=", "metegs-blind"), ("metegs-blind", ">", "3dgs")]
+    assert quick.checks[1].chain() == [("metegs-full", ">", "3dgs")]
 
 
 def _minimal(**extra):
