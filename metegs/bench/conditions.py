@@ -69,6 +69,12 @@ def _conditions(table, time: str, station: str | None = None):
         return conditions_at(table, time, "1h", "max", station=station)
 
 
+def _at_given_time(path: Path, src: dict):
+    """Conditions of the record at ``path`` at a condition entry's ``time`` (with its reader and station)."""
+    table, _ = _load(str(path.resolve()), src.get("reader"))
+    return _conditions(table, str(src["time"]), src.get("station"))
+
+
 @dataclass
 class RainPick:
     """A rain hour of a record."""
@@ -232,8 +238,7 @@ def resolve_condition(spec: ConditionSpec, base: Path | None = None) -> Resolved
         else:
             path = _path(src.get("record"), base, f"{where} rain")
             if "time" in src:
-                table, _ = _load(str(path.resolve()), src.get("reader"))
-                cond = _conditions(table, str(src["time"]), src.get("station"))
+                cond = _at_given_time(path, src)
                 pick = RainPick(
                     str(path.resolve()),
                     str(src["time"]),
@@ -269,8 +274,7 @@ def resolve_condition(spec: ConditionSpec, base: Path | None = None) -> Resolved
         else:
             path = _path(src.get("record"), base, f"{where} fog")
             if "time" in src:
-                table, _ = _load(str(path.resolve()), src.get("reader"))
-                cond = _conditions(table, str(src["time"]), src.get("station"))
+                cond = _at_given_time(path, src)
                 if cond.visibility_m is None:
                     raise DataError(path, f"no visibility at {src['time']}")
                 pick = FogPick(
