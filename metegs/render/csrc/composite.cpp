@@ -26,6 +26,7 @@
 #include <cmath>
 #include <cstdint>
 #include <cstring>
+#include <limits>
 #include <vector>
 
 namespace metegs_cpu {
@@ -44,12 +45,16 @@ struct Consts {
 
 // exp(x) for x <= 0. float: Cephes-style range reduction + degree-6 polynomial (about 1 ulp),
 // branch-free so that GCC vectorises the pixel loop; double: libm (used for gradcheck).
+// The float argument is clamped at -20: exp(-20) = 2e-9 is far below alpha_min / o for any opacity
+// o <= 1 (every alpha below 1/255 is skipped, so the clamp changes no output or gradient), and
+// without it most pixels of a small Gaussian's rows produce subnormal floats (exp(-87) = 2^-126),
+// whose arithmetic is many times slower than normal floats.
 template <typename scalar_t>
 inline __attribute__((always_inline)) scalar_t neg_exp(scalar_t x);
 
 template <>
 inline __attribute__((always_inline)) float neg_exp<float>(float x) {
-  x = x < -87.0f ? -87.0f : x;
+  x = x < -20.0f ? -20.0f : x;
   // round(x / ln 2) with the 1.5 * 2^23 trick (exact for |x / ln 2| < 2^22; no -ffast-math here).
   const float t = x * 1.44269504088896341f + 12582912.0f;
   const float n = t - 12582912.0f;
@@ -94,20 +99,36 @@ inline __attribute__((always_inline)) PixelAlpha<scalar_t> pixel_alpha(scalar_t 
   return r;
 }
 
-// Pixel range [pbeg, pend) of a tile (whole rows, row-major) outside which a Gaussian's alpha stays
-// below 1/255: at row offset dy the quadratic form is at least dy^2 (ac - b^2) / a, so only rows with
-// |dy| <= sqrt(2 ln(255 o) a / (ac - b^2)) can contribute (with a small safety margin). Skipping the
-// other rows changes nothing (their alpha would be skipped) and saves most of the work of Gaussians
-// smaller than a tile.
+// Half-height (in pixels) of the rows where a Gaussian's alpha can reach 1/255: at row offset dy the
+// quadratic form is at least dy^2 (ac - b^2) / a, so only rows with |dy| <= sqrt(2 ln(255 o) a / (ac - b^2))
+// can contribute (with a small safety margin); +inf when the conic is not positive definite (no
+// culling). Per Gaussian, computed once per op (it needs a log and a square root).
 template <typename scalar_t>
-inline void row_range(scalar_t my, scalar_t a, scalar_t b, scalar_t c, scalar_t o, int64_t y0, int& pbeg,
-                      int& pend) {
+inline double row_half_height(scalar_t a, scalar_t b, scalar_t c, scalar_t o) {
   const double A = a, B = b, Cc = c, det = A * Cc - B * B;
+  if (!(A > 0 && det > 0)) return std::numeric_limits<double>::infinity();
+  const double thresh = 2.0 * std::log(std::max(255.0 * double(o), 1.0));
+  return std::sqrt(thresh * A / det) * (1.0 + 1e-4) + 1e-3;
+}
+
+// row_half_height of every Gaussian, in parallel. -> [N]
+template <typename scalar_t>
+std::vector<double> row_half_heights(const scalar_t* conics, const scalar_t* opac, int64_t N) {
+  std::vector<double> h(N);
+  at::parallel_for(0, N, 1024, [&](int64_t begin, int64_t end) {
+    for (int64_t g = begin; g < end; ++g) h[g] = row_half_height(conics[3 * g], conics[3 * g + 1], conics[3 * g + 2], opac[g]);
+  });
+  return h;
+}
+
+// Pixel range [pbeg, pend) of a tile (whole rows, row-major) outside which a Gaussian's alpha stays
+// below 1/255 (h: its row_half_height). Skipping the other rows changes nothing (their alpha would be
+// skipped) and saves most of the work of Gaussians smaller than a tile.
+template <typename scalar_t>
+inline void row_range(scalar_t my, double h, int64_t y0, int& pbeg, int& pend) {
   pbeg = 0;
   pend = TP;
-  if (!(A > 0 && det > 0)) return;
-  const double thresh = 2.0 * std::log(std::max(255.0 * double(o), 1.0));
-  const double h = std::sqrt(thresh * A / det) * (1.0 + 1e-4) + 1e-3;
+  if (!(h < std::numeric_limits<double>::infinity())) return;
   const double lo = std::ceil(double(my) - h - 0.5) - double(y0);
   const double hi = std::floor(double(my) + h - 0.5) - double(y0) + 1.0;
   const int r0 = static_cast<int>(std::min(std::max(lo, 0.0), double(TS)));
@@ -125,24 +146,36 @@ void run_on_threads(F&& worker) {
   });
 }
 
-template <typename scalar_t>
+// Colour channels as a compile-time constant (DC > 0: the pixel loops carry the colours in registers)
+// or a run-time one (DC == 0: one extra pass over the pixels per channel).
+template <int DC>
+inline int64_t channels(int64_t D) {
+  return DC > 0 ? DC : D;
+}
+
+template <typename scalar_t, int DC>
 void forward_kernel(const scalar_t* __restrict__ means2d, const scalar_t* __restrict__ conics,
                     const scalar_t* __restrict__ opac, const scalar_t* __restrict__ colors,
                     const scalar_t* __restrict__ depths, const int64_t* __restrict__ ids,
-                    const int64_t* __restrict__ offsets, int64_t D, int64_t tiles_x, int64_t tiles_y,
+                    const int64_t* __restrict__ offsets, int64_t N, int64_t D_, int64_t tiles_x, int64_t tiles_y,
                     int64_t W, int64_t H, scalar_t* __restrict__ out_color, scalar_t* __restrict__ out_alpha,
                     scalar_t* __restrict__ out_depth, scalar_t* __restrict__ out_T,
                     int32_t* __restrict__ out_last) {
   using C = Consts<scalar_t>;
+  const int64_t D = channels<DC>(D_);
   const int64_t ntiles = tiles_x * tiles_y;
+  const std::vector<double> rows = row_half_heights(conics, opac, N);
   std::atomic<int64_t> next{0};
   run_on_threads([&]() {
     // Masks are kept as 0/1 floating-point values and every branch is a select: GCC only
     // vectorises the pixel loop in that form.
     alignas(64) scalar_t px[TP], py[TP], T[TP], dep[TP], w[TP], done[TP];
     alignas(64) int32_t last[TP];
-    std::vector<scalar_t> colbuf(std::max<int64_t>(D, 1) * TP);
+    std::vector<scalar_t> colbuf(std::max<int64_t>(D, 3) * TP);
     scalar_t* __restrict__ col = colbuf.data();  // [D][TP]
+    scalar_t* __restrict__ col0 = col;
+    scalar_t* __restrict__ col1 = col + TP;
+    scalar_t* __restrict__ col2 = col + 2 * TP;
     for (;;) {
       const int64_t t = next.fetch_add(1, std::memory_order_relaxed);
       if (t >= ntiles) break;
@@ -164,9 +197,12 @@ void forward_kernel(const scalar_t* __restrict__ means2d, const scalar_t* __rest
         const scalar_t mx = means2d[2 * g], my = means2d[2 * g + 1];
         const scalar_t a = conics[3 * g], b = conics[3 * g + 1], c = conics[3 * g + 2];
         const scalar_t o = opac[g], z = depths[g];
+        const scalar_t c0 = DC == 3 ? colors[3 * g] : scalar_t(0);
+        const scalar_t c1 = DC == 3 ? colors[3 * g + 1] : scalar_t(0);
+        const scalar_t c2 = DC == 3 ? colors[3 * g + 2] : scalar_t(0);
         const int32_t jp1 = static_cast<int32_t>(j + 1);
         int pbeg, pend;
-        row_range(my, a, b, c, o, y0, pbeg, pend);
+        row_range(my, rows[g], y0, pbeg, pend);
 #pragma omp simd
         for (int p = pbeg; p < pend; ++p) {
           const scalar_t alpha = pixel_alpha(px[p], py[p], mx, my, a, b, c, o).alpha;
@@ -175,17 +211,25 @@ void forward_kernel(const scalar_t* __restrict__ means2d, const scalar_t* __rest
           const scalar_t stop = Tn < C::t_min ? valid : scalar_t(0);  // T would fall below T_MIN
           const scalar_t contrib = valid - stop;
           const scalar_t wv = contrib * (alpha * T[p]);
-          w[p] = wv;
           dep[p] += wv * z;
           T[p] = contrib > scalar_t(0.5) ? Tn : T[p];
           last[p] = contrib > scalar_t(0.5) ? jp1 : last[p];
           done[p] += stop;
+          if constexpr (DC == 3) {
+            col0[p] += wv * c0;
+            col1[p] += wv * c1;
+            col2[p] += wv * c2;
+          } else {
+            w[p] = wv;
+          }
         }
-        for (int64_t d = 0; d < D; ++d) {
-          const scalar_t cd = colors[g * D + d];
-          scalar_t* __restrict__ cr = col + d * TP;
+        if constexpr (DC != 3) {
+          for (int64_t d = 0; d < D; ++d) {
+            const scalar_t cd = colors[g * D + d];
+            scalar_t* __restrict__ cr = col + d * TP;
 #pragma omp simd
-          for (int p = pbeg; p < pend; ++p) cr[p] += w[p] * cd;
+            for (int p = pbeg; p < pend; ++p) cr[p] += w[p] * cd;
+          }
         }
         if ((j & 7) == 7) {  // whole-tile early exit
           scalar_t nd = 0;
@@ -208,24 +252,34 @@ void forward_kernel(const scalar_t* __restrict__ means2d, const scalar_t* __rest
   });
 }
 
-template <typename scalar_t>
+template <typename scalar_t, int DC>
 void backward_kernel(const scalar_t* __restrict__ means2d, const scalar_t* __restrict__ conics,
                      const scalar_t* __restrict__ opac, const scalar_t* __restrict__ colors,
                      const scalar_t* __restrict__ depths, const int64_t* __restrict__ ids,
                      const int64_t* __restrict__ offsets, const scalar_t* __restrict__ saved_T,
                      const int32_t* __restrict__ saved_last, const scalar_t* __restrict__ g_color,
-                     const scalar_t* __restrict__ g_alpha, const scalar_t* __restrict__ g_depth, int64_t D,
-                     int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, scalar_t* __restrict__ out) {
+                     const scalar_t* __restrict__ g_alpha, const scalar_t* __restrict__ g_depth, int64_t N,
+                     int64_t D_, int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H,
+                     scalar_t* __restrict__ out) {
   using C = Consts<scalar_t>;
+  const int64_t D = channels<DC>(D_);
   const int64_t ntiles = tiles_x * tiles_y;
   const int64_t stride = NGRAD + D;
+  const std::vector<double> rows = row_half_heights(conics, opac, N);
   std::atomic<int64_t> next{0};
   run_on_threads([&]() {
     alignas(64) scalar_t px[TP], py[TP], T[TP], Tf[TP], gA[TP], gD[TP], restZ[TP], s[TP], av[TP], w[TP];
     alignas(64) int32_t last[TP];
-    std::vector<scalar_t> buf(2 * std::max<int64_t>(D, 1) * TP);
-    scalar_t* __restrict__ gC = buf.data();                            // [D][TP] dL/dcolor image
-    scalar_t* __restrict__ restC = buf.data() + std::max<int64_t>(D, 1) * TP;  // [D][TP] colour behind
+    const int64_t Dbuf = std::max<int64_t>(D, 3);
+    std::vector<scalar_t> buf(2 * Dbuf * TP);
+    scalar_t* __restrict__ gC = buf.data();                 // [D][TP] dL/dcolor image
+    scalar_t* __restrict__ restC = buf.data() + Dbuf * TP;  // [D][TP] colour behind
+    const scalar_t* __restrict__ gC0 = gC;
+    const scalar_t* __restrict__ gC1 = gC + TP;
+    const scalar_t* __restrict__ gC2 = gC + 2 * TP;
+    scalar_t* __restrict__ rC0 = restC;
+    scalar_t* __restrict__ rC1 = restC + TP;
+    scalar_t* __restrict__ rC2 = restC + 2 * TP;
     for (;;) {
       const int64_t t = next.fetch_add(1, std::memory_order_relaxed);
       if (t >= ntiles) break;
@@ -259,21 +313,26 @@ void backward_kernel(const scalar_t* __restrict__ means2d, const scalar_t* __res
         const scalar_t a = conics[3 * g], b = conics[3 * g + 1], c = conics[3 * g + 2];
         const scalar_t o = opac[g], z = depths[g];
         const scalar_t* __restrict__ cg = colors + g * D;
+        const scalar_t c0 = DC == 3 ? cg[0] : scalar_t(0);
+        const scalar_t c1 = DC == 3 ? cg[1] : scalar_t(0);
+        const scalar_t c2 = DC == 3 ? cg[2] : scalar_t(0);
         const int32_t jj = static_cast<int32_t>(j);
         int pbeg, pend;
-        row_range(my, a, b, c, o, y0, pbeg, pend);
-        // s = sum_d (c_d - colour composited behind) * dL/dC_d: needs no alpha of this Gaussian.
+        row_range(my, rows[g], y0, pbeg, pend);
+        if constexpr (DC != 3) {
+          // s = sum_d (c_d - colour composited behind) * dL/dC_d: needs no alpha of this Gaussian.
 #pragma omp simd
-        for (int p = pbeg; p < pend; ++p) s[p] = scalar_t(0);
-        for (int64_t d = 0; d < D; ++d) {
-          const scalar_t cd = cg[d];
-          const scalar_t* __restrict__ gc = gC + d * TP;
-          const scalar_t* __restrict__ rc = restC + d * TP;
+          for (int p = pbeg; p < pend; ++p) s[p] = scalar_t(0);
+          for (int64_t d = 0; d < D; ++d) {
+            const scalar_t cd = cg[d];
+            const scalar_t* __restrict__ gc = gC + d * TP;
+            const scalar_t* __restrict__ rc = restC + d * TP;
 #pragma omp simd
-          for (int p = pbeg; p < pend; ++p) s[p] += (cd - rc[p]) * gc[p];
+            for (int p = pbeg; p < pend; ++p) s[p] += (cd - rc[p]) * gc[p];
+          }
         }
-        scalar_t gmx = 0, gmy = 0, ga = 0, gb = 0, gc_ = 0, go = 0, gz = 0;
-#pragma omp simd reduction(+ : gmx, gmy, ga, gb, gc_, go, gz)
+        scalar_t gmx = 0, gmy = 0, ga = 0, gb = 0, gc_ = 0, go = 0, gz = 0, gk0 = 0, gk1 = 0, gk2 = 0;
+#pragma omp simd reduction(+ : gmx, gmy, ga, gb, gc_, go, gz, gk0, gk1, gk2)
         for (int p = pbeg; p < pend; ++p) {
           const auto pa = pixel_alpha(px[p], py[p], mx, my, a, b, c, o);
           const scalar_t dx = pa.dx, dy = pa.dy, power = pa.power, e = pa.e, oe = pa.oe, alpha = pa.alpha;
@@ -284,8 +343,16 @@ void backward_kernel(const scalar_t* __restrict__ means2d, const scalar_t* __res
           const scalar_t Tj = valid > scalar_t(0.5) ? Tdiv : T[p];  // transmittance in front of it
           const scalar_t a_v = valid * alpha;
           const scalar_t wv = a_v * Tj;
+          scalar_t sp;
+          if constexpr (DC == 3) {
+            sp = (c0 - rC0[p]) * gC0[p];
+            sp += (c1 - rC1[p]) * gC1[p];
+            sp += (c2 - rC2[p]) * gC2[p];
+          } else {
+            sp = s[p];
+          }
           // d(colour, depth)/dalpha = T_j (c - behind); d(1 - T_final)/dalpha = T_final / (1 - alpha)
-          const scalar_t dLda = Tj * (s[p] + (z - restZ[p]) * gD[p]) + gA[p] * Tf[p] * inv_om;
+          const scalar_t dLda = Tj * (sp + (z - restZ[p]) * gD[p]) + gA[p] * Tf[p] * inv_om;
           const scalar_t unclamped = oe <= C::alpha_max ? valid : scalar_t(0);
           const scalar_t dLdoe = unclamped > scalar_t(0.5) ? dLda : scalar_t(0);
           go += dLdoe * e;
@@ -298,8 +365,17 @@ void backward_kernel(const scalar_t* __restrict__ means2d, const scalar_t* __res
           gz += wv * gD[p];
           restZ[p] = restZ[p] * (scalar_t(1) - a_v) + a_v * z;
           T[p] = Tj;
-          av[p] = a_v;
-          w[p] = wv;
+          if constexpr (DC == 3) {
+            gk0 += wv * gC0[p];
+            gk1 += wv * gC1[p];
+            gk2 += wv * gC2[p];
+            rC0[p] = rC0[p] * (scalar_t(1) - a_v) + a_v * c0;
+            rC1[p] = rC1[p] * (scalar_t(1) - a_v) + a_v * c1;
+            rC2[p] = rC2[p] * (scalar_t(1) - a_v) + a_v * c2;
+          } else {
+            av[p] = a_v;
+            w[p] = wv;
+          }
         }
         scalar_t* __restrict__ o_row = out + (off + j) * stride;
         o_row[0] = gmx;
@@ -309,17 +385,23 @@ void backward_kernel(const scalar_t* __restrict__ means2d, const scalar_t* __res
         o_row[4] = gc_;
         o_row[5] = go;
         o_row[6] = gz;
-        for (int64_t d = 0; d < D; ++d) {
-          const scalar_t cd = cg[d];
-          const scalar_t* __restrict__ gc = gC + d * TP;
-          scalar_t* __restrict__ rc = restC + d * TP;
-          scalar_t gcol = 0;
+        if constexpr (DC == 3) {
+          o_row[NGRAD] = gk0;
+          o_row[NGRAD + 1] = gk1;
+          o_row[NGRAD + 2] = gk2;
+        } else {
+          for (int64_t d = 0; d < D; ++d) {
+            const scalar_t cd = cg[d];
+            const scalar_t* __restrict__ gc = gC + d * TP;
+            scalar_t* __restrict__ rc = restC + d * TP;
+            scalar_t gcol = 0;
 #pragma omp simd reduction(+ : gcol)
-          for (int p = pbeg; p < pend; ++p) {
-            gcol += w[p] * gc[p];
-            rc[p] = rc[p] * (scalar_t(1) - av[p]) + av[p] * cd;
+            for (int p = pbeg; p < pend; ++p) {
+              gcol += w[p] * gc[p];
+              rc[p] = rc[p] * (scalar_t(1) - av[p]) + av[p] * cd;
+            }
+            o_row[NGRAD + d] = gcol;
           }
-          o_row[NGRAD + d] = gcol;
         }
       }
     }
@@ -363,11 +445,15 @@ std::vector<at::Tensor> composite_forward(at::Tensor means2d, at::Tensor conics,
   auto T = at::empty({tiles_x * tiles_y, TP}, opts);
   auto last = at::empty({tiles_x * tiles_y, TP}, opts.dtype(at::kInt));
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "metegs_composite_forward", [&] {
-    forward_kernel<scalar_t>(means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(), opac.data_ptr<scalar_t>(),
-                             colors.data_ptr<scalar_t>(), depths.data_ptr<scalar_t>(), ids.data_ptr<int64_t>(),
-                             offsets.data_ptr<int64_t>(), D, tiles_x, tiles_y, width, height,
-                             color.data_ptr<scalar_t>(), alpha.data_ptr<scalar_t>(), depth.data_ptr<scalar_t>(),
-                             T.data_ptr<scalar_t>(), last.data_ptr<int32_t>());
+    auto run = [&](auto kernel) {
+      kernel(means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(), opac.data_ptr<scalar_t>(),
+             colors.data_ptr<scalar_t>(), depths.data_ptr<scalar_t>(), ids.data_ptr<int64_t>(),
+             offsets.data_ptr<int64_t>(), means2d.size(0), D, tiles_x, tiles_y, width, height,
+             color.data_ptr<scalar_t>(), alpha.data_ptr<scalar_t>(), depth.data_ptr<scalar_t>(),
+             T.data_ptr<scalar_t>(), last.data_ptr<int32_t>());
+    };
+    if (D == 3) run(forward_kernel<scalar_t, 3>);
+    else run(forward_kernel<scalar_t, 0>);
   });
   return {color, alpha, depth, T, last};
 }
@@ -398,12 +484,15 @@ at::Tensor composite_backward(at::Tensor means2d, at::Tensor conics, at::Tensor 
   auto per_isect = at::empty({M, S}, means2d.options());
   auto out = at::zeros({N, S}, means2d.options());
   AT_DISPATCH_FLOATING_TYPES(dt, "metegs_composite_backward", [&] {
-    backward_kernel<scalar_t>(means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(), opac.data_ptr<scalar_t>(),
-                              colors.data_ptr<scalar_t>(), depths.data_ptr<scalar_t>(), ids.data_ptr<int64_t>(),
-                              offsets.data_ptr<int64_t>(), saved_T.data_ptr<scalar_t>(),
-                              saved_last.data_ptr<int32_t>(), g_color.data_ptr<scalar_t>(),
-                              g_alpha.data_ptr<scalar_t>(), g_depth.data_ptr<scalar_t>(), D, tiles_x, tiles_y, width,
-                              height, per_isect.data_ptr<scalar_t>());
+    auto run = [&](auto kernel) {
+      kernel(means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(), opac.data_ptr<scalar_t>(),
+             colors.data_ptr<scalar_t>(), depths.data_ptr<scalar_t>(), ids.data_ptr<int64_t>(),
+             offsets.data_ptr<int64_t>(), saved_T.data_ptr<scalar_t>(), saved_last.data_ptr<int32_t>(),
+             g_color.data_ptr<scalar_t>(), g_alpha.data_ptr<scalar_t>(), g_depth.data_ptr<scalar_t>(), N, D,
+             tiles_x, tiles_y, width, height, per_isect.data_ptr<scalar_t>());
+    };
+    if (D == 3) run(backward_kernel<scalar_t, 3>);
+    else run(backward_kernel<scalar_t, 0>);
     // Reduce the intersections to their Gaussians (serial, in list order: deterministic).
     const int64_t* __restrict__ idp = ids.data_ptr<int64_t>();
     const scalar_t* __restrict__ src = per_isect.data_ptr<scalar_t>();
