@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
 import statistics
 import tempfile
@@ -32,14 +33,14 @@ WARMUP_STEPS = 20
 """Steps not timed (Gaussian growth starts, caches fill, the page settles)."""
 
 
-def browser():
-    """A headless Chromium driven by selenium."""
+def browser(window: str = "1280,800"):
+    """A headless Chromium driven by selenium. window: "WIDTH,HEIGHT" in CSS pixels."""
     from selenium import webdriver
     from selenium.webdriver.chrome.options import Options
     from selenium.webdriver.chrome.service import Service
 
     options = Options()
-    for arg in ("--headless=new", "--no-sandbox", "--disable-gpu", "--window-size=1280,800", "--disable-dev-shm-usage"):
+    for arg in ("--headless=new", "--no-sandbox", "--disable-gpu", f"--window-size={window}", "--disable-dev-shm-usage"):
         options.add_argument(arg)
     binary = shutil.which("chromium") or shutil.which("chromium-browser") or shutil.which("google-chrome")
     if binary:
@@ -47,7 +48,22 @@ def browser():
     return webdriver.Chrome(service=Service(shutil.which("chromedriver")), options=options)
 
 
-def train_rate(steps: int, threads: int, with_viewer: bool, out: Path, settle_s: float) -> dict:
+def browser_cpu_seconds() -> float:
+    """CPU time (user + system, s) used so far by every running Chromium process of this machine."""
+    total = 0
+    for pid in filter(str.isdigit, os.listdir("/proc")):
+        try:
+            if b"chrom" not in Path(f"/proc/{pid}/cmdline").read_bytes():
+                continue
+            fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        total += int(fields[11]) + int(fields[12])
+    return total / os.sysconf("SC_CLK_TCK")
+
+
+def train_rate(steps: int, threads: int, with_viewer: bool, out: Path, settle_s: float, window: str,
+               with_browser: bool = True, render_share: float = 0.15) -> dict:
     """Steps/s of one 3dgs run after the warm-up, with or without the viewer and a browser on it."""
     base = registry("method").get("3dgs")()
     config = replace(
@@ -62,22 +78,27 @@ def train_rate(steps: int, threads: int, with_viewer: bool, out: Path, settle_s:
     if with_viewer:
         from metegs.viewer import Viewer, ViewerConfig
 
-        viewer = Viewer(trainer, ViewerConfig(port=0), live=True)
-        driver = browser()
-        driver.get(viewer.url)
-        if not viewer.wait_for_frames(1, 60):
+        viewer = Viewer(trainer, ViewerConfig(port=0, render_share=render_share), live=True)
+        if with_browser:
+            driver = browser(window)
+            driver.get(viewer.url)
+        if with_browser and not viewer.wait_for_frames(1, 60):
             raise RuntimeError("the browser showed no frame within 60 s")
         time.sleep(settle_s)  # the page's one-off start-up is not a training-time cost
+    cpu0, wall0 = browser_cpu_seconds(), time.perf_counter()
     try:
         trainer.train()
     finally:
         frames = None if viewer is None else viewer.stats.count
+        browser_share = (browser_cpu_seconds() - cpu0) / (time.perf_counter() - wall0) if with_viewer else None
         if viewer is not None:
             viewer.training_finished()
-            driver.quit()
+            if driver is not None:
+                driver.quit()
             viewer.close()
     (s0, t0), (s1, t1) = next(p for p in stamps if p[0] >= WARMUP_STEPS), stamps[-1]
-    return {"viewer": with_viewer, "it_s": (s1 - s0) / (t1 - t0), "frames": frames, "gaussians": len(trainer.model)}
+    return {"viewer": with_viewer, "it_s": (s1 - s0) / (t1 - t0), "frames": frames, "gaussians": len(trainer.model),
+            "browser_cpu": browser_share, "browser": with_browser}
 
 
 def main() -> None:
@@ -86,6 +107,9 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=300, help="training steps per run")
     parser.add_argument("--repeats", type=int, default=3, help="repetitions of each mode (alternating)")
     parser.add_argument("--settle", type=float, default=10.0, help="seconds for the page to start before training")
+    parser.add_argument("--window", default="1280,800", help="browser window size WIDTH,HEIGHT (CSS pixels)")
+    parser.add_argument("--no-browser", action="store_true", help="attach the viewer but open no browser on it")
+    parser.add_argument("--render-share", type=float, default=0.15, help="the viewer's render_share while training")
     parser.add_argument("--json", type=Path, default=None, help="also write the records and the summary here")
     args = parser.parse_args()
     console = Console()
@@ -93,9 +117,11 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         for rep in range(args.repeats):
             for with_viewer in (False, True):
-                rec = train_rate(args.steps, args.threads, with_viewer, Path(tmp), args.settle)
+                rec = train_rate(args.steps, args.threads, with_viewer, Path(tmp), args.settle, args.window,
+                                 not args.no_browser, args.render_share)
                 records.append({**rec, "repeat": rep})
-                console.print(f"repeat {rep}: viewer={with_viewer} {rec['it_s']:.2f} it/s, frames {rec['frames']}")
+                console.print(f"repeat {rep}: viewer={with_viewer} {rec['it_s']:.2f} it/s, frames {rec['frames']}"
+                              + ("" if rec["browser_cpu"] is None else f", browser {rec['browser_cpu']:.2f} of a core"))
     alone = statistics.median(r["it_s"] for r in records if not r["viewer"])
     watched = statistics.median(r["it_s"] for r in records if r["viewer"])
     summary = {
