@@ -59,11 +59,16 @@ inline void quad_min(double a, double b, double c, double X0, double X1, double 
   for (double Y : {Y0, Y1}) consider(std::clamp(-b * Y / a, X0, X1), Y);
 }
 
+// 2 ln(255 o): the quadratic form's bound for alpha >= 1/255 (once per Gaussian: it needs a log).
 template <typename T>
-inline bool tile_reached(const T* m, const T* conic, T opacity, int64_t tx, int64_t ty, int64_t W, int64_t H) {
+inline double alpha_threshold(T opacity) {
+  return 2.0 * std::log(std::max(255.0 * double(opacity), 1.0));
+}
+
+template <typename T>
+inline bool tile_reached(const T* m, const T* conic, double thresh, int64_t tx, int64_t ty, int64_t W, int64_t H) {
   const double a = conic[0], b = conic[1], c = conic[2];
   if (!(a > 0 && c > 0 && a * c - b * b > 0)) return true;  // not positive definite: keep (no culling)
-  const double thresh = 2.0 * std::log(std::max(255.0 * double(opacity), 1.0));
   const double mx = m[0], my = m[1];
   const double X0 = double(tx * TILE) + 0.5 - mx, X1 = double(std::min((tx + 1) * TILE, W) - 1) + 0.5 - mx;
   const double Y0 = double(ty * TILE) + 0.5 - my, Y1 = double(std::min((ty + 1) * TILE, H) - 1) + 0.5 - my;
@@ -100,9 +105,11 @@ std::vector<at::Tensor> bin_tiles(at::Tensor means2d, at::Tensor conics, at::Ten
       const T* e = ep + 2 * g;
       if (!(e[0] > 0 && e[1] > 0)) return;
       const Rect r = tile_rect(mp + 2 * g, e, tiles_x, tiles_y);
+      const double thresh = cull ? alpha_threshold(op[g]) : 0.0;
       for (int64_t ty = r.y0; ty < r.y1; ++ty)
         for (int64_t tx = r.x0; tx < r.x1; ++tx)
-          if (!cull || tile_reached(mp + 2 * g, cp + 3 * g, op[g], tx, ty, width, height)) fn(ty * tiles_x + tx);
+          if (!cull || tile_reached(mp + 2 * g, cp + 3 * g, thresh, tx, ty, width, height))
+            fn(ty * tiles_x + tx);
     };
     at::parallel_for(0, N, 256, [&](int64_t begin, int64_t end) {
       for (int64_t g = begin; g < end; ++g) {
