@@ -32,22 +32,12 @@ from metegs.meteo import (
     default_storm_record,
     intensity_class,
     map_conditions,
+    parse_options,
     parse_time,
     precip_series,
     read_observations,
 )
 from metegs.meteo.observations import epoch_s, from_epoch_s
-
-
-def parse_options(pairs: tuple[str, ...]) -> dict[str, str]:
-    """``("year=2024", "month=7")`` → ``{"year": "2024", "month": "7"}`` (values are converted by the reader)."""
-    out = {}
-    for pair in pairs:
-        key, sep, value = pair.partition("=")
-        if not sep or not key.strip():
-            raise ConfigError(f"--set expects KEY=VALUE, got {pair!r}")
-        out[key.strip()] = value.strip()
-    return out
 
 
 def load_table(file: Path | None, reader: str | None, options: tuple[str, ...]) -> ObservationTable:

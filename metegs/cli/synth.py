@@ -154,7 +154,7 @@ def main(args: SynthArgs, console: Console | None = None) -> Path:
             n, camera, args.precip_mm_h or 0.0, args.visibility_m, args.wind_speed_m_per_s or 0.0, args.wind_dir_deg
         )
     else:
-        from metegs.cli.meteo import parse_options
+        from metegs.meteo import parse_options
 
         plan = plan_from_record(
             n,

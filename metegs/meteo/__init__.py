@@ -36,7 +36,7 @@ from metegs.meteo.mapping import (
 )
 from metegs.meteo.observations import Accumulation, Observation, ObservationTable, parse_time
 from metegs.meteo.rates import PrecipSeries, precip_series
-from metegs.meteo.readers import MeteoWarning, detect_reader, read_observations
+from metegs.meteo.readers import MeteoWarning, detect_reader, parse_options, read_observations
 from metegs.meteo.storm import DEFAULT_CAPTURE_TIME, default_storm_path, default_storm_record
 from metegs.meteo.weather_codes import PresentWeather
 
@@ -66,6 +66,7 @@ __all__ = [
     "normalised_intensity",
     "parse_time",
     "precip_series",
+    "parse_options",
     "read_observations",
     "theta_from_record",
     "theta_from_values",

@@ -111,7 +111,7 @@ def theta_for_cameras(config: ConditionsConfig, cameras: Cameras, metres_per_uni
     else:
         if config.wind_speed_m_s is not None or config.wind_dir_deg is not None:
             raise ConfigError("--conditions.wind-* go with --conditions.precip-mm-h (explicit values), not a record")
-        from metegs.cli.meteo import parse_options
+        from metegs.meteo import parse_options
 
         times = [config.time] if config.time else None
         if config.record is None and (config.reader is not None or config.set or config.station is not None):

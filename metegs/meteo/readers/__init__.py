@@ -5,12 +5,12 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from metegs.errors import DataError
+from metegs.errors import ConfigError, DataError
 from metegs.meteo.observations import ObservationTable
 from metegs.meteo.readers.base import MeteoWarning, ObservationReader, Problems
 from metegs.registry import registry
 
-__all__ = ["MeteoWarning", "ObservationReader", "Problems", "detect_reader", "read_observations"]
+__all__ = ["MeteoWarning", "ObservationReader", "Problems", "detect_reader", "parse_options", "read_observations"]
 
 _HEAD_BYTES = 4096
 
@@ -36,6 +36,20 @@ def detect_reader(path: str | Path) -> str:
         "cannot tell the format of this file; choose a reader with reader=NAME (CLI: --reader NAME): "
         + ", ".join(registry("meteo_reader").names()),
     )
+
+
+def parse_options(pairs: tuple[str, ...] | list[str]) -> dict[str, str]:
+    """Reader options given as ``KEY=VALUE`` strings (``--set``): ``("year=2024",)`` -> ``{"year": "2024"}``.
+
+    Values stay strings; each reader converts its own.
+    """
+    out = {}
+    for pair in pairs:
+        key, sep, value = pair.partition("=")
+        if not sep or not key.strip():
+            raise ConfigError(f"--set expects KEY=VALUE, got {pair!r}")
+        out[key.strip()] = value.strip()
+    return out
 
 
 def read_observations(path: str | Path, reader: str | None = None, **options: Any) -> ObservationTable:
