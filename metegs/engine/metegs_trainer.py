@@ -13,6 +13,7 @@ from pathlib import Path
 import torch
 
 from metegs.engine.metegs_config import MeteGSConfig
+from metegs.engine.optim import adam
 from metegs.engine.trainer import Trainer
 from metegs.render import RenderSettings
 from metegs.weather.base import WeatherModel, WeatherScene
@@ -136,7 +137,7 @@ class MeteGSTrainer(Trainer):
     def _method_optimizers(self) -> dict[str, torch.optim.Optimizer]:
         optimizers = {}
         if self.gtn is not None:
-            optimizers["gtn"] = torch.optim.Adam(self.gtn.parameters(), lr=self.config.gtn.lr)
+            optimizers["gtn"] = adam(self.gtn.parameters(), lr=self.config.gtn.lr)
         groups = []
         for m in self.weather_models:
             if isinstance(m, LearnableTransients):
@@ -146,7 +147,7 @@ class MeteGSTrainer(Trainer):
                 if params:
                     groups.append({"params": params, "lr": self.config.weather_lr, "name": m.name})
         if groups:
-            optimizers["weather"] = torch.optim.Adam(groups, eps=1e-15)
+            optimizers["weather"] = adam(groups, eps=1e-15)
         return optimizers
 
     def background(self, training: bool) -> torch.Tensor:

@@ -31,6 +31,17 @@ class OptimConfig:
     """Adam epsilon."""
 
 
+def adam(params, **kwargs) -> torch.optim.Adam:
+    """``torch.optim.Adam(params, **kwargs)``, fused (one kernel per parameter) where torch has a fused Adam
+    for the parameters' device: on CPU since torch 2.4, several times faster than the per-tensor loop
+    torch otherwise uses there. Falls back to the default implementation elsewhere."""
+    params = list(params)
+    try:
+        return torch.optim.Adam(params, fused=True, **kwargs)
+    except (RuntimeError, ValueError, TypeError):  # device or dtype without a fused kernel (or an older torch)
+        return torch.optim.Adam(params, **kwargs)
+
+
 def make_optimizers(params: nn.ParameterDict, cfg: OptimConfig, extent: float) -> dict[str, torch.optim.Adam]:
     """One single-group Adam per parameter; the position rate scales with the scene ``extent``."""
     lrs = {
@@ -41,7 +52,7 @@ def make_optimizers(params: nn.ParameterDict, cfg: OptimConfig, extent: float) -
         "scales": cfg.scales_lr,
         "quats": cfg.quats_lr,
     }
-    return {name: torch.optim.Adam([params[name]], lr=lrs[name], eps=cfg.eps) for name in params.keys()}
+    return {name: adam([params[name]], lr=lrs[name], eps=cfg.eps) for name in params.keys()}
 
 
 def means_lr_at(step: int, max_steps: int, cfg: OptimConfig, extent: float) -> float:
