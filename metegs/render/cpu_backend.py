@@ -177,13 +177,14 @@ class CompositeTiles(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, means2d, conics, opacities, colors, depths, gaussian_ids, offsets,
-                tiles_x, tiles_y, width, height):
+                tiles_x, tiles_y, width, height, rows=None):
         ext = load_extension()
         color, alpha, depth, t_final, last = ext.forward(
-            means2d, conics, opacities, colors, depths, gaussian_ids, offsets, tiles_x, tiles_y, width, height
+            means2d, conics, opacities, colors, depths, gaussian_ids, offsets, tiles_x, tiles_y, width, height, rows
         )
         ctx.save_for_backward(means2d, conics, opacities, colors, depths, gaussian_ids, offsets, t_final, last)
         ctx.dims = (tiles_x, tiles_y, width, height)
+        ctx.rows = rows
         return color, alpha, depth
 
     @staticmethod
@@ -193,11 +194,10 @@ class CompositeTiles(torch.autograd.Function):
         tiles_x, tiles_y, width, height = ctx.dims
         grads = load_extension().backward(
             means2d, conics, opacities, colors, depths, ids, offsets, t_final, last,
-            g_color, g_alpha, g_depth, tiles_x, tiles_y, width, height,
-        )  # [N, 7 + D]: mx, my, conic a, b, c, opacity, depth, colour...
-        out = (grads[:, 0:2], grads[:, 2:5], grads[:, 5], grads[:, 7:], grads[:, 6])
-        out = tuple(g.contiguous() if need else None for g, need in zip(out, ctx.needs_input_grad, strict=False))
-        return (*out, None, None, None, None, None, None)
+            g_color, g_alpha, g_depth, tiles_x, tiles_y, width, height, ctx.rows,
+        )  # means2d, conics, opacities, colours, depths
+        out = tuple(g if need else None for g, need in zip(grads, ctx.needs_input_grad, strict=False))
+        return (*out, None, None, None, None, None, None, None)
 
 
 def composite_tiles_cpu(
@@ -247,10 +247,12 @@ class CpuRasterizer:
         )
         if means2d.requires_grad:
             means2d.retain_grad()
-        ids, offsets = load_extension().bin_tiles(
+        ids, offsets, rows = load_extension().bin_tiles(
             means2d.detach(), conics.detach(), g.opacities.detach(), extents, depths.detach(), width, height,
             self.cull_tiles,
         )
         bins = TileBins((width + TILE_SIZE - 1) // TILE_SIZE, (height + TILE_SIZE - 1) // TILE_SIZE, ids, offsets)
-        color, alpha, depth_sum = composite_tiles_cpu(means2d, conics, g.opacities, colors, depths, bins, width, height)
+        color, alpha, depth_sum = CompositeTiles.apply(
+            means2d, conics, g.opacities, colors, depths, ids, offsets, bins.tiles_x, bins.tiles_y, width, height, rows
+        )
         return finish_render(color, alpha, depth_sum, s, radii, means2d, bins.num_intersections)

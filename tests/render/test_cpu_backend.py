@@ -264,16 +264,22 @@ def test_projection_op_matches_torch_reference(sh_degree):
         torch.testing.assert_close(a, b, rtol=1e-8, atol=1e-10, msg=lambda m, n=name: f"grad {n}: {m}")
 
 
-@pytest.mark.parametrize("seed", [0, 1])
-def test_binning_matches_torch_and_culling_is_a_subset(seed):
+@pytest.mark.parametrize("seed,ties", [(0, False), (1, False), (2, True)])
+def test_binning_matches_torch_and_culling_is_a_subset(seed, ties):
+    """Same lists as the torch reference; with ``ties``, depths rounded to 4 values (equal depths keep id order)."""
     g = random_scene(500, seed=seed, sh_degree=0)
     cam = camera(90, 70, f=60.0)
     proj, bins, _, W, H = _composite_inputs(g, cam)
+    depths = proj.depths
+    if ties:
+        depths = depths.round()
+        assert depths.unique().numel() < 10
+        bins = bin_gaussians(proj.means2d, proj.extents, depths, W, H)
     ext = cpu_backend.load_extension()
-    args = (proj.means2d, proj.conics, g.opacities, proj.extents, proj.depths, W, H)
-    ids, offsets = ext.bin_tiles(*args, False)
+    args = (proj.means2d, proj.conics, g.opacities, proj.extents, depths, W, H)
+    ids, offsets, _ = ext.bin_tiles(*args, False)
     assert torch.equal(offsets, bins.offsets) and torch.equal(ids, bins.gaussian_ids)
-    cids, coffsets = ext.bin_tiles(*args, True)
+    cids, coffsets, _ = ext.bin_tiles(*args, True)
     assert cids.numel() < ids.numel()
     for t in range(len(offsets) - 1):
         kept = cids[coffsets[t]:coffsets[t + 1]].tolist()

@@ -5,6 +5,13 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("project_forward", &metegs_cpu::project_forward, "fused EWA projection + SH colours (CPU)");
   m.def("project_backward", &metegs_cpu::project_backward, "backward of project_forward (CPU)");
   m.def("bin_tiles", &metegs_cpu::bin_tiles, "depth-sorted per-tile Gaussian lists (CPU)");
-  m.def("forward", &metegs_cpu::composite_forward, "metegs tile compositing forward (CPU)");
-  m.def("backward", &metegs_cpu::composite_backward, "metegs tile compositing backward (CPU), per-Gaussian gradients");
+  m.def("forward", &metegs_cpu::composite_forward, "metegs tile compositing forward (CPU)", py::arg("means2d"),
+        py::arg("conics"), py::arg("opacities"), py::arg("colors"), py::arg("depths"), py::arg("ids"),
+        py::arg("offsets"), py::arg("tiles_x"), py::arg("tiles_y"), py::arg("width"), py::arg("height"),
+        py::arg("rows") = py::none());
+  m.def("backward", &metegs_cpu::composite_backward, "metegs tile compositing backward (CPU), per-Gaussian gradients",
+        py::arg("means2d"), py::arg("conics"), py::arg("opacities"), py::arg("colors"), py::arg("depths"),
+        py::arg("ids"), py::arg("offsets"), py::arg("saved_T"), py::arg("saved_last"), py::arg("g_color"),
+        py::arg("g_alpha"), py::arg("g_depth"), py::arg("tiles_x"), py::arg("tiles_y"), py::arg("width"),
+        py::arg("height"), py::arg("rows") = py::none());
 }

@@ -99,19 +99,7 @@ inline __attribute__((always_inline)) PixelAlpha<scalar_t> pixel_alpha(scalar_t 
   return r;
 }
 
-// Half-height (in pixels) of the rows where a Gaussian's alpha can reach 1/255: at row offset dy the
-// quadratic form is at least dy^2 (ac - b^2) / a, so only rows with |dy| <= sqrt(2 ln(255 o) a / (ac - b^2))
-// can contribute (with a small safety margin); +inf when the conic is not positive definite (no
-// culling). Per Gaussian, computed once per op (it needs a log and a square root).
-template <typename scalar_t>
-inline double row_half_height(scalar_t a, scalar_t b, scalar_t c, scalar_t o) {
-  const double A = a, B = b, Cc = c, det = A * Cc - B * B;
-  if (!(A > 0 && det > 0)) return std::numeric_limits<double>::infinity();
-  const double thresh = 2.0 * std::log(std::max(255.0 * double(o), 1.0));
-  return std::sqrt(thresh * A / det) * (1.0 + 1e-4) + 1e-3;
-}
-
-// row_half_height of every Gaussian, in parallel. -> [N]
+// row_half_height of every Gaussian (when the caller has none from bin_tiles), in parallel. -> [N]
 template <typename scalar_t>
 std::vector<double> row_half_heights(const scalar_t* conics, const scalar_t* opac, int64_t N) {
   std::vector<double> h(N);
@@ -157,14 +145,19 @@ template <typename scalar_t, int DC>
 void forward_kernel(const scalar_t* __restrict__ means2d, const scalar_t* __restrict__ conics,
                     const scalar_t* __restrict__ opac, const scalar_t* __restrict__ colors,
                     const scalar_t* __restrict__ depths, const int64_t* __restrict__ ids,
-                    const int64_t* __restrict__ offsets, int64_t N, int64_t D_, int64_t tiles_x, int64_t tiles_y,
-                    int64_t W, int64_t H, scalar_t* __restrict__ out_color, scalar_t* __restrict__ out_alpha,
+                    const int64_t* __restrict__ offsets, const double* rows_in, int64_t N, int64_t D_,
+                    int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, scalar_t* __restrict__ out_color, scalar_t* __restrict__ out_alpha,
                     scalar_t* __restrict__ out_depth, scalar_t* __restrict__ out_T,
                     int32_t* __restrict__ out_last) {
   using C = Consts<scalar_t>;
   const int64_t D = channels<DC>(D_);
   const int64_t ntiles = tiles_x * tiles_y;
-  const std::vector<double> rows = row_half_heights(conics, opac, N);
+  std::vector<double> own;  // row half-heights when bin_tiles gave none
+  const double* rows = rows_in;
+  if (rows == nullptr) {
+    own = row_half_heights(conics, opac, N);
+    rows = own.data();
+  }
   std::atomic<int64_t> next{0};
   run_on_threads([&]() {
     // Masks are kept as 0/1 floating-point values and every branch is a select: GCC only
@@ -258,14 +251,19 @@ void backward_kernel(const scalar_t* __restrict__ means2d, const scalar_t* __res
                      const scalar_t* __restrict__ depths, const int64_t* __restrict__ ids,
                      const int64_t* __restrict__ offsets, const scalar_t* __restrict__ saved_T,
                      const int32_t* __restrict__ saved_last, const scalar_t* __restrict__ g_color,
-                     const scalar_t* __restrict__ g_alpha, const scalar_t* __restrict__ g_depth, int64_t N,
-                     int64_t D_, int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H,
+                     const scalar_t* __restrict__ g_alpha, const scalar_t* __restrict__ g_depth,
+                     const double* rows_in, int64_t N, int64_t D_, int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H,
                      scalar_t* __restrict__ out) {
   using C = Consts<scalar_t>;
   const int64_t D = channels<DC>(D_);
   const int64_t ntiles = tiles_x * tiles_y;
   const int64_t stride = NGRAD + D;
-  const std::vector<double> rows = row_half_heights(conics, opac, N);
+  std::vector<double> own;  // row half-heights when bin_tiles gave none
+  const double* rows = rows_in;
+  if (rows == nullptr) {
+    own = row_half_heights(conics, opac, N);
+    rows = own.data();
+  }
   std::atomic<int64_t> next{0};
   run_on_threads([&]() {
     alignas(64) scalar_t px[TP], py[TP], T[TP], Tf[TP], gA[TP], gD[TP], restZ[TP], s[TP], av[TP], w[TP];
@@ -429,13 +427,23 @@ void prepare_inputs(at::Tensor& means2d, at::Tensor& conics, at::Tensor& opac, a
   for (at::Tensor* t : {&means2d, &conics, &opac, &colors, &depths, &ids, &offsets}) *t = t->contiguous();
 }
 
+// The row half-heights given by bin_tiles ([N] float64), checked; nullptr when none were given.
+const double* rows_pointer(c10::optional<at::Tensor>& rows, int64_t N) {
+  if (!rows.has_value() || !rows->defined()) return nullptr;
+  TORCH_CHECK(rows->dim() == 1 && rows->size(0) == N && rows->scalar_type() == at::kDouble,
+              "rows must be the [N] float64 row half-heights of bin_tiles");
+  *rows = rows->contiguous();
+  return rows->data_ptr<double>();
+}
+
 }  // namespace
 
 std::vector<at::Tensor> composite_forward(at::Tensor means2d, at::Tensor conics, at::Tensor opac,
                                           at::Tensor colors, at::Tensor depths, at::Tensor ids,
                                           at::Tensor offsets, int64_t tiles_x, int64_t tiles_y, int64_t width,
-                                          int64_t height) {
+                                          int64_t height, c10::optional<at::Tensor> rows) {
   prepare_inputs(means2d, conics, opac, colors, depths, ids, offsets, tiles_x, tiles_y);
+  const double* rowp = rows_pointer(rows, means2d.size(0));
   TORCH_CHECK(width <= tiles_x * TS && height <= tiles_y * TS, "image larger than the tile grid");
   const int64_t D = colors.size(1);
   const auto opts = means2d.options();
@@ -448,7 +456,7 @@ std::vector<at::Tensor> composite_forward(at::Tensor means2d, at::Tensor conics,
     auto run = [&](auto kernel) {
       kernel(means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(), opac.data_ptr<scalar_t>(),
              colors.data_ptr<scalar_t>(), depths.data_ptr<scalar_t>(), ids.data_ptr<int64_t>(),
-             offsets.data_ptr<int64_t>(), means2d.size(0), D, tiles_x, tiles_y, width, height,
+             offsets.data_ptr<int64_t>(), rowp, means2d.size(0), D, tiles_x, tiles_y, width, height,
              color.data_ptr<scalar_t>(), alpha.data_ptr<scalar_t>(), depth.data_ptr<scalar_t>(),
              T.data_ptr<scalar_t>(), last.data_ptr<int32_t>());
     };
@@ -458,12 +466,13 @@ std::vector<at::Tensor> composite_forward(at::Tensor means2d, at::Tensor conics,
   return {color, alpha, depth, T, last};
 }
 
-// Returns per-Gaussian gradients [N, 7 + D]: (mx, my, conic a, b, c, opacity, depth, colour...), summed
-// over the per-intersection gradients.
-at::Tensor composite_backward(at::Tensor means2d, at::Tensor conics, at::Tensor opac, at::Tensor colors,
-                              at::Tensor depths, at::Tensor ids, at::Tensor offsets, at::Tensor saved_T,
-                              at::Tensor saved_last, at::Tensor g_color, at::Tensor g_alpha, at::Tensor g_depth,
-                              int64_t tiles_x, int64_t tiles_y, int64_t width, int64_t height) {
+// Returns the per-Gaussian gradients (means2d [N, 2], conics [N, 3], opacities [N], colours [N, D], depths [N]),
+// each the sum of its Gaussian's per-intersection gradients.
+std::vector<at::Tensor> composite_backward(at::Tensor means2d, at::Tensor conics, at::Tensor opac, at::Tensor colors,
+                                           at::Tensor depths, at::Tensor ids, at::Tensor offsets, at::Tensor saved_T,
+                                           at::Tensor saved_last, at::Tensor g_color, at::Tensor g_alpha,
+                                           at::Tensor g_depth, int64_t tiles_x, int64_t tiles_y, int64_t width,
+                                           int64_t height, c10::optional<at::Tensor> rows) {
   prepare_inputs(means2d, conics, opac, colors, depths, ids, offsets, tiles_x, tiles_y);
   const int64_t D = colors.size(1);
   const auto dt = means2d.scalar_type();
@@ -481,29 +490,39 @@ at::Tensor composite_backward(at::Tensor means2d, at::Tensor conics, at::Tensor 
   g_alpha = g_alpha.contiguous();
   g_depth = g_depth.contiguous();
   const int64_t N = means2d.size(0), M = ids.size(0), S = NGRAD + D;
+  const double* rowp = rows_pointer(rows, N);
   auto per_isect = at::empty({M, S}, means2d.options());
-  auto out = at::zeros({N, S}, means2d.options());
+  const auto opts = means2d.options();
+  std::vector<at::Tensor> outs = {at::zeros({N, 2}, opts), at::zeros({N, 3}, opts), at::zeros({N}, opts),
+                                  at::zeros({N, D}, opts), at::zeros({N}, opts)};
   AT_DISPATCH_FLOATING_TYPES(dt, "metegs_composite_backward", [&] {
     auto run = [&](auto kernel) {
       kernel(means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(), opac.data_ptr<scalar_t>(),
              colors.data_ptr<scalar_t>(), depths.data_ptr<scalar_t>(), ids.data_ptr<int64_t>(),
              offsets.data_ptr<int64_t>(), saved_T.data_ptr<scalar_t>(), saved_last.data_ptr<int32_t>(),
-             g_color.data_ptr<scalar_t>(), g_alpha.data_ptr<scalar_t>(), g_depth.data_ptr<scalar_t>(), N, D,
+             g_color.data_ptr<scalar_t>(), g_alpha.data_ptr<scalar_t>(), g_depth.data_ptr<scalar_t>(), rowp, N, D,
              tiles_x, tiles_y, width, height, per_isect.data_ptr<scalar_t>());
     };
     if (D == 3) run(backward_kernel<scalar_t, 3>);
     else run(backward_kernel<scalar_t, 0>);
-    // Reduce the intersections to their Gaussians (serial, in list order: deterministic).
+    // Reduce the intersections to their Gaussians, one output tensor per task (no two threads share a
+    // cache line), each summed in list order: deterministic.
+    const int64_t first[5] = {0, 2, 5, 7, 6};  // per_isect column of each output's first column
     const int64_t* __restrict__ idp = ids.data_ptr<int64_t>();
     const scalar_t* __restrict__ src = per_isect.data_ptr<scalar_t>();
-    scalar_t* __restrict__ dst = out.data_ptr<scalar_t>();
-    for (int64_t m = 0; m < M; ++m) {
-      scalar_t* __restrict__ row = dst + idp[m] * S;
-      const scalar_t* __restrict__ r = src + m * S;
-      for (int64_t k = 0; k < S; ++k) row[k] += r[k];
-    }
+    at::parallel_for(0, 5, 1, [&](int64_t begin, int64_t end) {
+      for (int64_t k = begin; k < end; ++k) {
+        const int64_t w = outs[k].numel() / std::max<int64_t>(N, 1), c0 = first[k];
+        scalar_t* __restrict__ dst = outs[k].data_ptr<scalar_t>();
+        for (int64_t m = 0; m < M; ++m) {
+          scalar_t* __restrict__ row = dst + idp[m] * w;
+          const scalar_t* __restrict__ r = src + m * S + c0;
+          for (int64_t c = 0; c < w; ++c) row[c] += r[c];
+        }
+      }
+    });
   });
-  return out;
+  return outs;
 }
 
 }  // namespace metegs_cpu

@@ -3,11 +3,31 @@
 
 #include <torch/extension.h>
 
+#include <algorithm>
+#include <cmath>
+#include <limits>
 #include <vector>
 
 namespace metegs_cpu {
 
 constexpr int TILE = 16;  // tile side (metegs.render.tiles.TILE_SIZE)
+
+// 2 ln(255 o): the bound on the conic's quadratic form where alpha = o exp(-q / 2) reaches 1/255.
+template <typename T>
+inline double alpha_threshold(T opacity) {
+  return 2.0 * std::log(std::max(255.0 * double(opacity), 1.0));
+}
+
+// Half-height (in pixels) of the rows where a Gaussian's alpha can reach 1/255: at row offset dy the
+// quadratic form is at least dy^2 (ac - b^2) / a, so only rows with |dy| <= sqrt(2 ln(255 o) a / (ac - b^2))
+// can contribute (with a small safety margin); +inf when the conic is not positive definite (no culling).
+// bin_tiles computes it once per Gaussian (it needs a log and a square root) for the compositing ops.
+template <typename T>
+inline double row_half_height(T a, T b, T c, T opacity) {
+  const double A = a, B = b, Cc = c, det = A * Cc - B * B;
+  if (!(A > 0 && det > 0)) return std::numeric_limits<double>::infinity();
+  return std::sqrt(alpha_threshold(opacity) * A / det) * (1.0 + 1e-4) + 1e-3;
+}
 
 // project.cpp: fused EWA projection + SH colours and their backward.
 std::vector<at::Tensor> project_forward(at::Tensor means, at::Tensor quats, at::Tensor scales, at::Tensor opacities,
@@ -20,17 +40,21 @@ std::vector<at::Tensor> project_backward(at::Tensor means, at::Tensor quats, at:
                                          double far_plane, double eps2d, int64_t sh_degree, at::Tensor g_means2d,
                                          at::Tensor g_conics, at::Tensor g_depths, at::Tensor g_colors);
 
-// binning.cpp: depth-sorted per-tile lists with an exact ellipse-tile test.
+// binning.cpp: depth-sorted per-tile lists with an exact ellipse-tile test, and every Gaussian's
+// row_half_height ([N] float64) for the compositing ops.
 std::vector<at::Tensor> bin_tiles(at::Tensor means2d, at::Tensor conics, at::Tensor opacities, at::Tensor extents,
                                   at::Tensor depths, int64_t width, int64_t height, bool cull);
 
 // composite.cpp: tile compositing and its backward.
 std::vector<at::Tensor> composite_forward(at::Tensor means2d, at::Tensor conics, at::Tensor opac, at::Tensor colors,
                                           at::Tensor depths, at::Tensor ids, at::Tensor offsets, int64_t tiles_x,
-                                          int64_t tiles_y, int64_t width, int64_t height);
-at::Tensor composite_backward(at::Tensor means2d, at::Tensor conics, at::Tensor opac, at::Tensor colors,
+                                          int64_t tiles_y, int64_t width, int64_t height,
+                                          c10::optional<at::Tensor> rows);
+// -> per-Gaussian gradients: means2d [N, 2], conics [N, 3], opacities [N], colours [N, D], depths [N].
+std::vector<at::Tensor> composite_backward(at::Tensor means2d, at::Tensor conics, at::Tensor opac, at::Tensor colors,
                               at::Tensor depths, at::Tensor ids, at::Tensor offsets, at::Tensor saved_T,
                               at::Tensor saved_last, at::Tensor g_color, at::Tensor g_alpha, at::Tensor g_depth,
-                              int64_t tiles_x, int64_t tiles_y, int64_t width, int64_t height);
+                              int64_t tiles_x, int64_t tiles_y, int64_t width, int64_t height,
+                              c10::optional<at::Tensor> rows);
 
 }  // namespace metegs_cpu
