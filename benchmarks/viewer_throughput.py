@@ -63,7 +63,7 @@ def browser_cpu_seconds() -> float:
 
 
 def train_rate(steps: int, threads: int, with_viewer: bool, out: Path, settle_s: float, window: str,
-               with_browser: bool = True, render_share: float = 0.15) -> dict:
+               with_browser: bool = True, render_share: float | None = None) -> dict:
     """Steps/s of one 3dgs run after the warm-up, with or without the viewer and a browser on it."""
     base = registry("method").get("3dgs")()
     config = replace(
@@ -78,7 +78,8 @@ def train_rate(steps: int, threads: int, with_viewer: bool, out: Path, settle_s:
     if with_viewer:
         from metegs.viewer import Viewer, ViewerConfig
 
-        viewer = Viewer(trainer, ViewerConfig(port=0, render_share=render_share), live=True)
+        shares = {} if render_share is None else {"render_share": render_share}
+        viewer = Viewer(trainer, ViewerConfig(port=0, **shares), live=True)
         if with_browser:
             driver = browser(window)
             driver.get(viewer.url)
@@ -109,7 +110,8 @@ def main() -> None:
     parser.add_argument("--settle", type=float, default=10.0, help="seconds for the page to start before training")
     parser.add_argument("--window", default="1280,800", help="browser window size WIDTH,HEIGHT (CSS pixels)")
     parser.add_argument("--no-browser", action="store_true", help="attach the viewer but open no browser on it")
-    parser.add_argument("--render-share", type=float, default=0.15, help="the viewer's render_share while training")
+    parser.add_argument("--render-share", type=float, default=None,
+                        help="the viewer's render_share while training (default: ViewerConfig's)")
     parser.add_argument("--json", type=Path, default=None, help="also write the records and the summary here")
     args = parser.parse_args()
     console = Console()

@@ -287,6 +287,30 @@ def test_binning_matches_torch_and_culling_is_a_subset(seed, ties):
         assert kept == [i for i in full if i in set(kept)]  # a sub-list, still front to back
 
 
+def test_row_half_heights_of_bin_tiles_equal_the_composite_fallback_and_bad_rows_are_refused():
+    """The compositing op gives the same image and gradients with bin_tiles' row half-heights as when it
+    computes them itself; rows of the wrong shape or dtype are a clear error."""
+    g = random_scene(300, seed=4, sh_degree=0)
+    cam = camera(70, 50, f=50.0)
+    proj, _, colors, W, H = _composite_inputs(g, cam)
+    ext = cpu_backend.load_extension()
+    ids, offsets, rows = ext.bin_tiles(proj.means2d, proj.conics, g.opacities, proj.extents, proj.depths, W, H, True)
+    tiles = ((W + 15) // 16, (H + 15) // 16)
+
+    def run(r):
+        inputs = [t.detach().clone().requires_grad_(True) for t in (proj.means2d, proj.conics, g.opacities, colors)]
+        color, alpha, _ = CompositeTiles.apply(*inputs, proj.depths, ids, offsets, *tiles, W, H, r)
+        (color.sum() + alpha.sum()).backward()
+        return [color, alpha] + [t.grad for t in inputs]
+
+    for a, b in zip(run(rows), run(None), strict=True):
+        assert torch.equal(a, b)
+    args = (proj.means2d, proj.conics, g.opacities, colors, proj.depths, ids, offsets, *tiles, W, H)
+    for bad in (rows.float(), rows[:-1]):
+        with pytest.raises(RuntimeError, match="rows must be the"):
+            ext.forward(*args, bad)
+
+
 def test_build_failure_still_trains_through_torch(tmp_path):
     """No compiler (simulated): `backend=auto` trains with `torch`, with exactly one warning."""
     import json

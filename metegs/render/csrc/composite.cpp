@@ -99,16 +99,6 @@ inline __attribute__((always_inline)) PixelAlpha<scalar_t> pixel_alpha(scalar_t 
   return r;
 }
 
-// row_half_height of every Gaussian (when the caller has none from bin_tiles), in parallel. -> [N]
-template <typename scalar_t>
-std::vector<double> row_half_heights(const scalar_t* conics, const scalar_t* opac, int64_t N) {
-  std::vector<double> h(N);
-  at::parallel_for(0, N, 1024, [&](int64_t begin, int64_t end) {
-    for (int64_t g = begin; g < end; ++g) h[g] = row_half_height(conics[3 * g], conics[3 * g + 1], conics[3 * g + 2], opac[g]);
-  });
-  return h;
-}
-
 // Pixel range [pbeg, pend) of a tile (whole rows, row-major) outside which a Gaussian's alpha stays
 // below 1/255 (h: its row_half_height). Skipping the other rows changes nothing (their alpha would be
 // skipped) and saves most of the work of Gaussians smaller than a tile.
@@ -145,19 +135,14 @@ template <typename scalar_t, int DC>
 void forward_kernel(const scalar_t* __restrict__ means2d, const scalar_t* __restrict__ conics,
                     const scalar_t* __restrict__ opac, const scalar_t* __restrict__ colors,
                     const scalar_t* __restrict__ depths, const int64_t* __restrict__ ids,
-                    const int64_t* __restrict__ offsets, const double* rows_in, int64_t N, int64_t D_,
-                    int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, scalar_t* __restrict__ out_color, scalar_t* __restrict__ out_alpha,
+                    const int64_t* __restrict__ offsets, const double* __restrict__ rows, int64_t D_,
+                    int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H, scalar_t* __restrict__ out_color,
+                    scalar_t* __restrict__ out_alpha,
                     scalar_t* __restrict__ out_depth, scalar_t* __restrict__ out_T,
                     int32_t* __restrict__ out_last) {
   using C = Consts<scalar_t>;
   const int64_t D = channels<DC>(D_);
   const int64_t ntiles = tiles_x * tiles_y;
-  std::vector<double> own;  // row half-heights when bin_tiles gave none
-  const double* rows = rows_in;
-  if (rows == nullptr) {
-    own = row_half_heights(conics, opac, N);
-    rows = own.data();
-  }
   std::atomic<int64_t> next{0};
   run_on_threads([&]() {
     // Masks are kept as 0/1 floating-point values and every branch is a select: GCC only
@@ -252,18 +237,13 @@ void backward_kernel(const scalar_t* __restrict__ means2d, const scalar_t* __res
                      const int64_t* __restrict__ offsets, const scalar_t* __restrict__ saved_T,
                      const int32_t* __restrict__ saved_last, const scalar_t* __restrict__ g_color,
                      const scalar_t* __restrict__ g_alpha, const scalar_t* __restrict__ g_depth,
-                     const double* rows_in, int64_t N, int64_t D_, int64_t tiles_x, int64_t tiles_y, int64_t W, int64_t H,
+                     const double* __restrict__ rows, int64_t D_, int64_t tiles_x, int64_t tiles_y, int64_t W,
+                     int64_t H,
                      scalar_t* __restrict__ out) {
   using C = Consts<scalar_t>;
   const int64_t D = channels<DC>(D_);
   const int64_t ntiles = tiles_x * tiles_y;
   const int64_t stride = NGRAD + D;
-  std::vector<double> own;  // row half-heights when bin_tiles gave none
-  const double* rows = rows_in;
-  if (rows == nullptr) {
-    own = row_half_heights(conics, opac, N);
-    rows = own.data();
-  }
   std::atomic<int64_t> next{0};
   run_on_threads([&]() {
     alignas(64) scalar_t px[TP], py[TP], T[TP], Tf[TP], gA[TP], gD[TP], restZ[TP], s[TP], av[TP], w[TP];
@@ -427,13 +407,24 @@ void prepare_inputs(at::Tensor& means2d, at::Tensor& conics, at::Tensor& opac, a
   for (at::Tensor* t : {&means2d, &conics, &opac, &colors, &depths, &ids, &offsets}) *t = t->contiguous();
 }
 
-// The row half-heights given by bin_tiles ([N] float64), checked; nullptr when none were given.
-const double* rows_pointer(c10::optional<at::Tensor>& rows, int64_t N) {
-  if (!rows.has_value() || !rows->defined()) return nullptr;
-  TORCH_CHECK(rows->dim() == 1 && rows->size(0) == N && rows->scalar_type() == at::kDouble,
-              "rows must be the [N] float64 row half-heights of bin_tiles");
-  *rows = rows->contiguous();
-  return rows->data_ptr<double>();
+// The [N] float64 row half-heights: those bin_tiles gave (checked), else computed here from the conics
+// and opacities (callers with other tile lists).
+at::Tensor resolve_rows(const c10::optional<at::Tensor>& rows, const at::Tensor& conics, const at::Tensor& opac) {
+  const int64_t N = conics.size(0);
+  if (rows.has_value() && rows->defined()) {
+    TORCH_CHECK(rows->dim() == 1 && rows->size(0) == N && rows->scalar_type() == at::kDouble,
+                "rows must be the [N] float64 row half-heights of bin_tiles");
+    return rows->contiguous();
+  }
+  auto out = at::empty({N}, conics.options().dtype(at::kDouble));
+  double* h = out.data_ptr<double>();
+  AT_DISPATCH_FLOATING_TYPES(conics.scalar_type(), "metegs_row_half_heights", [&] {
+    const scalar_t *c = conics.data_ptr<scalar_t>(), *o = opac.data_ptr<scalar_t>();
+    at::parallel_for(0, N, 1024, [&](int64_t begin, int64_t end) {
+      for (int64_t g = begin; g < end; ++g) h[g] = row_half_height(c[3 * g], c[3 * g + 1], c[3 * g + 2], o[g]);
+    });
+  });
+  return out;
 }
 
 }  // namespace
@@ -443,7 +434,7 @@ std::vector<at::Tensor> composite_forward(at::Tensor means2d, at::Tensor conics,
                                           at::Tensor offsets, int64_t tiles_x, int64_t tiles_y, int64_t width,
                                           int64_t height, c10::optional<at::Tensor> rows) {
   prepare_inputs(means2d, conics, opac, colors, depths, ids, offsets, tiles_x, tiles_y);
-  const double* rowp = rows_pointer(rows, means2d.size(0));
+  const at::Tensor row_h = resolve_rows(rows, conics, opac);
   TORCH_CHECK(width <= tiles_x * TS && height <= tiles_y * TS, "image larger than the tile grid");
   const int64_t D = colors.size(1);
   const auto opts = means2d.options();
@@ -456,7 +447,7 @@ std::vector<at::Tensor> composite_forward(at::Tensor means2d, at::Tensor conics,
     auto run = [&](auto kernel) {
       kernel(means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(), opac.data_ptr<scalar_t>(),
              colors.data_ptr<scalar_t>(), depths.data_ptr<scalar_t>(), ids.data_ptr<int64_t>(),
-             offsets.data_ptr<int64_t>(), rowp, means2d.size(0), D, tiles_x, tiles_y, width, height,
+             offsets.data_ptr<int64_t>(), row_h.data_ptr<double>(), D, tiles_x, tiles_y, width, height,
              color.data_ptr<scalar_t>(), alpha.data_ptr<scalar_t>(), depth.data_ptr<scalar_t>(),
              T.data_ptr<scalar_t>(), last.data_ptr<int32_t>());
     };
@@ -490,7 +481,7 @@ std::vector<at::Tensor> composite_backward(at::Tensor means2d, at::Tensor conics
   g_alpha = g_alpha.contiguous();
   g_depth = g_depth.contiguous();
   const int64_t N = means2d.size(0), M = ids.size(0), S = NGRAD + D;
-  const double* rowp = rows_pointer(rows, N);
+  const at::Tensor row_h = resolve_rows(rows, conics, opac);
   auto per_isect = at::empty({M, S}, means2d.options());
   const auto opts = means2d.options();
   std::vector<at::Tensor> outs = {at::zeros({N, 2}, opts), at::zeros({N, 3}, opts), at::zeros({N}, opts),
@@ -500,7 +491,8 @@ std::vector<at::Tensor> composite_backward(at::Tensor means2d, at::Tensor conics
       kernel(means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(), opac.data_ptr<scalar_t>(),
              colors.data_ptr<scalar_t>(), depths.data_ptr<scalar_t>(), ids.data_ptr<int64_t>(),
              offsets.data_ptr<int64_t>(), saved_T.data_ptr<scalar_t>(), saved_last.data_ptr<int32_t>(),
-             g_color.data_ptr<scalar_t>(), g_alpha.data_ptr<scalar_t>(), g_depth.data_ptr<scalar_t>(), rowp, N, D,
+             g_color.data_ptr<scalar_t>(), g_alpha.data_ptr<scalar_t>(), g_depth.data_ptr<scalar_t>(),
+             row_h.data_ptr<double>(), D,
              tiles_x, tiles_y, width, height, per_isect.data_ptr<scalar_t>());
     };
     if (D == 3) run(backward_kernel<scalar_t, 3>);
