@@ -89,8 +89,11 @@ class AdaptiveDensityControl:
         return {"start": self.start_step, "stop": self.stop_step, "every": self.every, "reset_every": self.reset_every}
 
     @torch.no_grad()
-    def update_stats(self, model: GaussianModel, out: RenderOutput, num_scene: int | None = None) -> None:
-        """Accumulate screen-space gradient norms of the first ``num_scene`` Gaussians (weather ones excluded)."""
+    def update_stats(
+        self, model: GaussianModel, out: RenderOutput, num_scene: int | None = None, gain: torch.Tensor | None = None
+    ) -> None:
+        """Accumulate screen-space gradient norms of the first ``num_scene`` Gaussians (weather ones excluded),
+        each multiplied by ``gain`` [num_scene] when given (e.g. to undo a medium's attenuation)."""
         n = len(model) if num_scene is None else num_scene
         if self.state is None or self.state.grad_sum.shape[0] != len(model):
             self.state = DensifyState.zeros(len(model), model.device)
@@ -99,7 +102,10 @@ class AdaptiveDensityControl:
             return
         grad = grad[:n] * torch.tensor([out.width / 2.0, out.height / 2.0], device=grad.device)
         visible = out.radii[:n] > 0
-        self.state.grad_sum[visible] += grad[visible].norm(dim=-1)
+        norm = grad.norm(dim=-1)
+        if gain is not None:
+            norm = norm * gain
+        self.state.grad_sum[visible] += norm[visible]
         self.state.count[visible] += 1
         self.state.max_radii[visible] = torch.maximum(
             self.state.max_radii[visible], out.radii[:n][visible].float() / max(out.width, out.height)

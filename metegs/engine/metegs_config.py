@@ -51,6 +51,10 @@ class MeteGSConfig(TrainConfig):
     """Gaussian Transformation Network of the weather branch."""
     perceptual: PerceptualLossConfig = field(default_factory=PerceptualLossConfig)
     """Perceptual loss of the clean branch (backbone and layers)."""
+    densify_through_fog: float = 10.0
+    """Densification sees the scene as if unfogged: each scene Gaussian's screen-space gradient is divided by the
+    fog's transmittance at its distance, by at most this factor (1: off). Without it fog, which scales every
+    gradient reaching the scene by t, slows densification by the mean t."""
     depth_prune: bool = True
     """Depth-aware pruning: the opacity threshold falls with normalised camera depth."""
     depth_prune_options: DepthPruneConfig = field(default_factory=DepthPruneConfig)

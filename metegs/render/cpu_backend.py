@@ -34,7 +34,7 @@ from metegs.render.tiles import TILE_SIZE, TileBins
 
 CSRC = Path(__file__).parent / "csrc"
 SOURCES = [CSRC / name for name in ("bindings.cpp", "project.cpp", "binning.cpp", "composite.cpp")]
-HEADERS = [CSRC / "metegs_cpu.h"]
+HEADERS = [CSRC / "metegs_cpu.h", CSRC / "pool.h"]
 _TORCH_TAG = "".join(ch if ch.isalnum() else "_" for ch in torch.__version__)
 EXTENSION_NAME = f"metegs_cpu_composite_{_TORCH_TAG}"
 
@@ -44,12 +44,11 @@ EXTENSION_NAME = f"metegs_cpu_composite_{_TORCH_TAG}"
 # binary built for another CPU. -mprefer-vector-width=512 lets GCC use zmm registers where the CPU
 # has AVX-512 (about 1.4x on the Zen 5 CI machine; ignored elsewhere). -ffp-contract=off keeps
 # forward and backward alphas bit-identical (see the .cpp); -fno-trapping-math lets GCC if-convert
-# (vectorise) the pixel loops (no FP exceptions are used). -fopenmp: at::parallel_for is inlined from
-# ATen's headers as `#pragma omp parallel`, so without it every kernel would run on one thread. The
-# extension links libgomp.so.1 by soname, which resolves to the runtime torch has already loaded
-# (torch/lib/libgomp.so.1): one thread pool, shared with torch's own ops.
+# (vectorise) the pixel loops (no FP exceptions are used). -fopenmp-simd: the `omp simd` hints of the
+# pixel loops only; the kernels run on metegs' own pool (csrc/pool.h), not on OpenMP regions, whose closing
+# barriers wait for any descheduled thread (see pool.h).
 CFLAGS = [
-    "-O3", "-march=native", "-mprefer-vector-width=512", "-ffp-contract=off", "-fno-trapping-math", "-fopenmp",
+    "-O3", "-march=native", "-mprefer-vector-width=512", "-ffp-contract=off", "-fno-trapping-math", "-fopenmp-simd",
 ]
 
 
@@ -132,7 +131,7 @@ def _build():
         name=EXTENSION_NAME,
         sources=[str(f) for f in SOURCES],
         extra_include_paths=[str(CSRC)],
-        extra_ldflags=["-fopenmp"],
+        extra_ldflags=["-pthread"],
         extra_cflags=CFLAGS,
         build_directory=str(build_dir),
         verbose=False,

@@ -38,8 +38,9 @@ from metegs.weather.compose import build_weather_models
 from metegs.weather.fog_analytic import ray_lengths
 
 KINDS = ("rain", "fog", "drops")
-"""Weather kinds ``kinds`` may join with ``+``: ``rain`` (streaks), ``fog`` (the fog medium; with ``rain`` also
-the rain's own veil) and ``drops`` (lens drops when it rains: θ_drops' count when the record implies drops,
+"""Weather kinds ``kinds`` may join with ``+``: ``rain`` (the streaks within their far distance and the veil of the
+rain beyond it, θ_fog.beta_rain_per_m, over clear air), ``fog`` (the fog medium, plus the rain's veil when it
+rains) and ``drops`` (lens drops when it rains: θ_drops' count when the record implies drops,
 else the model's forced default). Lens drops are a property of one camera's glass, not of the scene's weather, and
 they hide large parts of the view: they are added only when asked for."""
 
@@ -270,7 +271,7 @@ class _Engine:
         if rain_wanted:
             wscene.images = self._images()  # the drop colour is lit by each view's sky
             configs.append(_config("rain-streaks"))
-        if "fog" in self.kinds:
+        if "fog" in self.kinds or rain_wanted:  # rain beyond the streaks' reach acts as a veil (weather-physics.md)
             airlight = None if theta.fog.airlight_rgb is not None else self.airlight()
             configs.append(
                 _config("fog-analytic", airlight=airlight, include_rain_veil="rain" in self.kinds, learnable=False)

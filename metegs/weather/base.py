@@ -70,6 +70,16 @@ class WeatherModel(torch.nn.Module):
         """Image-space effect: rgb [H, W, 3] (already composited) -> [H, W, 3]."""
         return rgb
 
+    def transmittance(self, points: torch.Tensor, view: int) -> torch.Tensor | None:
+        """Fraction of the light of world points [N, 3] (scene units) that this medium lets reach the camera of
+        view ``view`` -> [N] in (0, 1], or None when the model does not attenuate the scene (the default)."""
+        return None
+
+    def _distance_m(self, points: torch.Tensor, view: int) -> torch.Tensor:
+        """Distance of world points [N, 3] from the camera of view ``view`` in metres -> [N]."""
+        centre = self.scene.cameras.camera_to_worlds[view, :3, 3].to(points)
+        return (points - centre).norm(dim=-1) * self.scene.metres_per_unit
+
 
 @dataclass
 class WeatherModelConfig(InstantiateConfig):

@@ -87,3 +87,7 @@ class FogAnalytic(WeatherModel):
         distance = out.depth * rays * self.scene.metres_per_unit
         distance = torch.where(out.alpha > 1e-6, distance, torch.zeros_like(distance))
         return fog_composite(color, out.alpha, distance, self.beta_rgb.to(rgb), self.airlight.to(rgb))
+
+    def transmittance(self, points: torch.Tensor, view: int) -> torch.Tensor:
+        """[N] exp(−β·d) of world points [N, 3] seen from view ``view``, averaged over R, G, B."""
+        return torch.exp(-self._distance_m(points, view)[:, None] * self.beta_rgb.detach().to(points)).mean(-1)

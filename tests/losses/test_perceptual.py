@@ -135,7 +135,8 @@ def test_more_blur_gives_a_larger_loss_with_the_shared_weights():
 def test_shared_mat_is_found_automatically(no_weights, monkeypatch):
     mat = _shared_mat()
     monkeypatch.setattr(perc, "shared_squeezenet_dir", lambda: mat.parent)
-    loss, reason = try_load_perceptual(PerceptualLossConfig())
+    assert try_load_perceptual(PerceptualLossConfig())[0] is None  # auto never picks the stand-in by itself
+    loss, reason = try_load_perceptual(PerceptualLossConfig(backbone="squeezenet"))
     assert reason is None and loss.backbone_name == "squeezenet1.1" and loss.source == str(mat)
     feats = loss.extractor.features(SqueezeNetFeatures.preprocess(torch.rand(1, 3, 64, 64)))
     assert feats["fire9"].shape[1] == 512 and torch.isfinite(feats["fire9"]).all()
@@ -145,7 +146,7 @@ def test_user_cache_and_env_var_are_searched(no_weights, monkeypatch):
     cache = no_weights / "cache" / "metegs" / "weights"
     cache.mkdir(parents=True)
     write_random_mat(cache / "squeezenet1.1-caffe.mat")
-    loss, reason = try_load_perceptual(PerceptualLossConfig())
+    loss, reason = try_load_perceptual(PerceptualLossConfig(backbone="squeezenet"))
     assert reason is None and Path(loss.source) == cache / "squeezenet1.1-caffe.mat"
     other = write_random_mat(no_weights / "elsewhere.mat", seed=5)
     monkeypatch.setenv(perc.PERCEPTUAL_ENV, str(other))
@@ -154,11 +155,13 @@ def test_user_cache_and_env_var_are_searched(no_weights, monkeypatch):
 
 
 def test_missing_weights_give_a_reason_naming_where_it_looked(no_weights):
+    loss, reason = try_load_perceptual(PerceptualLossConfig(backbone="squeezenet"))
+    assert loss is None and "squeezenet1.1" in reason and str(no_weights / "no-shared") in reason
+    assert str(no_weights / "cache" / "metegs" / "weights") in reason
     loss, reason = try_load_perceptual(PerceptualLossConfig())
     assert loss is None
     assert str(no_weights / "hub" / "checkpoints") in reason  # the VGG16 hub cache
-    assert "vgg16-397923af.pth" in reason and "squeezenet1.1" in reason
-    assert str(no_weights / "cache" / "metegs" / "weights") in reason and str(no_weights / "no-shared") in reason
+    assert "vgg16-397923af.pth" in reason and "--perceptual.backbone squeezenet" in reason
     assert "weights_path" in reason and perc.PERCEPTUAL_ENV in reason and "download=True" in reason
     loss, reason = try_load_perceptual(PerceptualLossConfig(backbone="vgg16"))
     assert loss is None and "SqueezeNet" not in reason
@@ -225,8 +228,8 @@ def test_download_only_when_allowed(no_weights, monkeypatch):
     cache = no_weights / "cache" / "metegs" / "weights"
     cache.mkdir(parents=True)
     write_random_mat(cache / "squeezenet1.1.mat")
-    loss, reason = try_load_perceptual(PerceptualLossConfig(download=True))  # auto: falls back to SqueezeNet
-    assert reason is None and loss.backbone_name == "squeezenet1.1" and len(calls) == 2
+    loss, reason = try_load_perceptual(PerceptualLossConfig(download=True))  # auto: no SqueezeNet fallback
+    assert loss is None and "network unreachable" in reason and len(calls) == 2
     state = {f"features.{k}": v for k, v in lp.vgg16_features().state_dict().items()}
     monkeypatch.setattr(torch.hub, "load_state_dict_from_url", lambda url, **kwargs: calls.append(url) or state)
     loss, reason = try_load_perceptual(PerceptualLossConfig(download=True))

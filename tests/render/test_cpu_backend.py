@@ -330,3 +330,31 @@ def test_build_failure_still_trains_through_torch(tmp_path):
     assert "backend: torch" in (run / "config.yml").read_text()
     assert "C++ compiler" in res.stderr
     assert json.loads((run / "metrics.json").read_text())["num_gaussians"] > 0
+
+
+def test_pool_gives_the_same_bits_on_any_thread_count_and_under_concurrent_calls():
+    """metegs::parallel_for (csrc/pool.h) hands out chunks dynamically: the images and gradients must not depend
+    on how many threads took part, nor on two Python threads rendering at once (their jobs take turns)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    g, cam = random_scene(3000, seed=4, sh_degree=2), camera(96, 64, f=70.0)
+    settings = RenderSettings(sh_degree=2)
+
+    def run(seed: int = 0):
+        out, grads, m2d = render_with_grads(CpuRasterizer(), g, cam, settings, seed=seed)
+        return [out.rgb, out.depth, out.alpha, m2d, *grads.values()]
+
+    previous = torch.get_num_threads()
+    try:
+        runs = {}
+        for threads in (1, 2, 3):
+            torch.set_num_threads(threads)
+            runs[threads] = run()
+        with ThreadPoolExecutor(2) as pool:
+            concurrent = list(pool.map(run, [0, 1, 0, 1]))
+    finally:
+        torch.set_num_threads(previous)
+    for threads in (2, 3):
+        assert all(torch.equal(a, b) for a, b in zip(runs[1], runs[threads])), threads
+    assert all(torch.equal(a, b) for a, b in zip(runs[1], concurrent[0]))
+    assert all(torch.equal(a, b) for a, b in zip(concurrent[1], concurrent[3]))

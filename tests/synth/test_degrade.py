@@ -3,6 +3,7 @@
 import dataclasses
 
 import numpy as np
+import torch
 import pytest
 
 from metegs.data.config import SyntheticSceneConfig
@@ -12,7 +13,7 @@ from metegs.meteo import theta_from_values
 from metegs.synth import degrade_scene, iter_degraded_views
 from metegs.synth.degrade import UNKNOWN_DEPTH, fill_unknown_depth
 from metegs.weather.conditions import camera_spec
-from metegs.weather.fog_analytic import ray_lengths
+from metegs.weather.fog_analytic import fog_composite, ray_lengths
 
 # one P per WMO class: drizzle, light, moderate, heavy, violent rain
 CLASSES = [(0.3, "drizzle"), (1.5, "rain"), (6.0, "rain"), (20.0, "rain"), (70.0, "rain")]
@@ -85,18 +86,22 @@ def _fog_beta(foggy, clean, distance_m, airlight, keep) -> float:
 def test_two_nearby_views_share_the_fog_but_not_the_rain(scene, camera):
     theta = theta_from_values(30.0, visibility_m=300.0, fog_kind="fog", camera=camera)
     rainy, records = degrade_scene(scene, theta, kinds="rain+fog", seed=1)
-    streaks, _ = degrade_scene(scene, theta, kinds="rain", seed=1)  # the same streaks without the medium
+    streaks, veiled = degrade_scene(scene, theta, kinds="rain", seed=1)  # the same streaks in the rain's veil alone
     airlight = np.array(records[0]["airlight_rgb"], np.float32)
     beta = float(np.mean(records[0]["fog_beta_rgb_per_m"]))
     assert records[1]["airlight_rgb"] == records[0]["airlight_rgb"]
     assert beta == pytest.approx(float(np.mean(theta.fog.beta_rgb_per_m)) + theta.fog.beta_rain_per_m)  # + rain veil
     masks, betas = [], []
     for v in (0, 1):
-        rain = np.abs(streaks.images[v] - scene.images[v]).max(-1) > 1 / 255
-        assert 0.001 < rain.mean() < 0.5
-        masks.append(rain)
         rays = ray_lengths(scene.cameras[v], *scene.depths[v].shape).numpy()
         distance = scene.depths[v] * rays * scene.metric_scale
+        veil = fog_composite(
+            torch.from_numpy(scene.images[v]), torch.ones(distance.shape), torch.from_numpy(distance),
+            torch.tensor(veiled[v]["fog_beta_rgb_per_m"]), torch.tensor(veiled[v]["airlight_rgb"]),
+        ).numpy()  # fmt: skip
+        rain = np.abs(streaks.images[v] - veil).max(-1) > 1 / 255
+        assert 0.001 < rain.mean() < 0.5
+        masks.append(rain)
         betas.append(_fog_beta(rainy.images[v], scene.images[v], distance, airlight, ~rain))
     # one medium: the images of both views show the same extinction, the one recorded
     assert betas[0] == pytest.approx(beta, rel=0.01) and betas[1] == pytest.approx(beta, rel=0.01)

@@ -13,6 +13,7 @@ from metegs.meteo import CameraSpec, theta_from_values
 from metegs.render.base import RenderOutput, RenderSettings
 from metegs.render.torch_backend import TorchRasterizer
 from metegs.weather import WeatherScene, build_weather_models, render_with_weather
+from metegs.weather.compose import scene_transmittance
 from metegs.weather.fog_analytic import FogAnalytic, FogAnalyticConfig
 from metegs.weather.fog_gaussians import FogGaussiansConfig
 from metegs.weather.rain_streaks import RainStreaks, RainStreaksConfig
@@ -73,6 +74,9 @@ def test_fog_analytic_transmittance_is_exp_minus_beta_d():
         t = 1.0 - rgb[H // 2, W // 2]  # the centre ray has length d
         expected = torch.exp(-beta * d)
         assert torch.allclose(t, expected, rtol=0.01, atol=1e-4)
+        # what densification divides by: the same medium at a point on that ray, averaged over R, G, B
+        point_t = fog.transmittance(torch.tensor([[0.0, 0.0, d]]), 0)
+        assert point_t.shape == (1,) and float(point_t) == pytest.approx(float(t.mean().detach()), rel=0.01)
     assert float(beta.detach().mean()) == pytest.approx(math.log(20) / 300.0, rel=0.05)  # 5 % contrast rule
 
 
@@ -96,6 +100,21 @@ def test_fog_gaussians_transmittance_within_one_percent(depth):
     measured = float((1.0 - r.rgb.mean(-1)).mean())
     expected = float(torch.exp(-fog.beta_per_m * depth * rays).mean())
     assert measured == pytest.approx(expected, rel=0.01)
+    centre = float(1.0 - r.rgb[H // 2 - 1 : H // 2 + 1, W // 2 - 1 : W // 2 + 1].mean())
+    assert float(fog.transmittance(torch.tensor([[0.0, 0.0, depth]]), 0)) == pytest.approx(centre, rel=0.02)
+
+
+def test_scene_transmittance_multiplies_the_media_and_ignores_the_rest():
+    theta = theta_from_values(10.0, visibility_m=300.0, fog_kind="fog", camera=spec())
+    scene = weather_scene()
+    fog = FogAnalytic(FogAnalyticConfig(airlight=(1.0, 1.0, 1.0)), theta, scene)
+    rain = RainStreaks(RainStreaksConfig(), theta, scene)
+    points = torch.tensor([[0.0, 0.0, 30.0], [3.0, 4.0, 0.0]])  # 30 m and 5 m from the camera
+    assert rain.transmittance(points, 0) is None and scene_transmittance([rain], points, 0) is None
+    one = scene_transmittance([rain, fog], points, 0)
+    expected = torch.exp(-torch.tensor([30.0, 5.0])[:, None] * fog.beta_rgb.detach()).mean(-1)
+    assert torch.allclose(one, expected, rtol=1e-6)
+    assert torch.allclose(scene_transmittance([fog, rain, fog], points, 0), one**2, rtol=1e-6)
 
 
 def test_zero_weather_renders_the_clean_image_and_adds_nothing():

@@ -149,7 +149,7 @@ std::vector<at::Tensor> bin_tiles(at::Tensor means2d, at::Tensor conics, at::Ten
           if (!cull || tile_reached(mp + 2 * g, cp + 3 * g, thresh, tx, ty, width, height))
             fn(ty * tiles_x + tx);
     };
-    at::parallel_for(0, N, 256, [&](int64_t begin, int64_t end) {
+    metegs::parallel_for(0, N, 256, [&](int64_t begin, int64_t end) {
       for (int64_t g = begin; g < end; ++g) {
         rowp[g] = row_half_height(cp[3 * g], cp[3 * g + 1], cp[3 * g + 2], op[g]);
         int64_t n = 0;
@@ -169,7 +169,7 @@ std::vector<at::Tensor> bin_tiles(at::Tensor means2d, at::Tensor conics, at::Ten
     for (int64_t i = 0; i < NB; ++i) start[i + 1] = start[i] + count[ord[i]];
     const int64_t M = start[NB];
     std::vector<int32_t> tiles_of(M);
-    at::parallel_for(0, NB, 256, [&](int64_t begin, int64_t end) {
+    metegs::parallel_for(0, NB, 256, [&](int64_t begin, int64_t end) {
       for (int64_t i = begin; i < end; ++i) {
         int64_t k = start[i];
         for_each_tile(ord[i], [&](int64_t t) { tiles_of[k++] = static_cast<int32_t>(t); });

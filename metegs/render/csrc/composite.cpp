@@ -6,8 +6,8 @@
 // skipped when alpha < 1/255; a pixel stops before the Gaussian that would take T below 1e-4.
 //
 // Layout (the design that measured fastest on CPU, see shared/research/cpu-rasteriser.md): threads
-// take whole tiles from a shared counter (dynamic scheduling inside torch's own intra-op pool via
-// at::parallel_for); inside a tile the Gaussians are the outer loop and the 256 pixels the inner,
+// take whole tiles from a shared counter (dynamic scheduling on metegs::parallel_for's pool, pool.h,
+// sized by torch's intra-op thread count); inside a tile the Gaussians are the outer loop and the 256 pixels the inner,
 // branch-free, vectorised loop (with a polynomial exp for float32). The forward saves per pixel
 // the final transmittance and the number of list entries it used; the backward walks back to
 // front from that state, recovering T_i = T_{i+1} / (1 - alpha_i) (alpha <= 0.99, so stable).
@@ -115,11 +115,12 @@ inline void row_range(scalar_t my, double h, int64_t y0, int& pbeg, int& pend) {
   pend = std::max(r1, r0) * TS;
 }
 
-// Runs `worker` once on each of torch's intra-op threads; workers pull tiles from a shared counter.
+// Runs `worker` once per intra-op thread (at::get_num_threads()); workers pull tiles from a shared counter, and a
+// worker that starts late finds none left (the caller may already have run its share, pool.h).
 template <typename F>
 void run_on_threads(F&& worker) {
   const int64_t nt = std::max<int64_t>(1, at::get_num_threads());
-  at::parallel_for(0, nt, 1, [&](int64_t begin, int64_t end) {
+  metegs::parallel_for(0, nt, 1, [&](int64_t begin, int64_t end) {
     for (int64_t i = begin; i < end; ++i) worker();
   });
 }
@@ -420,7 +421,7 @@ at::Tensor resolve_rows(const c10::optional<at::Tensor>& rows, const at::Tensor&
   double* h = out.data_ptr<double>();
   AT_DISPATCH_FLOATING_TYPES(conics.scalar_type(), "metegs_row_half_heights", [&] {
     const scalar_t *c = conics.data_ptr<scalar_t>(), *o = opac.data_ptr<scalar_t>();
-    at::parallel_for(0, N, 1024, [&](int64_t begin, int64_t end) {
+    metegs::parallel_for(0, N, 1024, [&](int64_t begin, int64_t end) {
       for (int64_t g = begin; g < end; ++g) h[g] = row_half_height(c[3 * g], c[3 * g + 1], c[3 * g + 2], o[g]);
     });
   });
@@ -502,7 +503,7 @@ std::vector<at::Tensor> composite_backward(at::Tensor means2d, at::Tensor conics
     const int64_t first[5] = {0, 2, 5, 7, 6};  // per_isect column of each output's first column
     const int64_t* __restrict__ idp = ids.data_ptr<int64_t>();
     const scalar_t* __restrict__ src = per_isect.data_ptr<scalar_t>();
-    at::parallel_for(0, 5, 1, [&](int64_t begin, int64_t end) {
+    metegs::parallel_for(0, 5, 1, [&](int64_t begin, int64_t end) {
       for (int64_t k = begin; k < end; ++k) {
         const int64_t w = outs[k].numel() / std::max<int64_t>(N, 1), c0 = first[k];
         scalar_t* __restrict__ dst = outs[k].data_ptr<scalar_t>();

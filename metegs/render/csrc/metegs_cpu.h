@@ -3,6 +3,8 @@
 
 #include <torch/extension.h>
 
+#include "pool.h"
+
 #include <algorithm>
 #include <cmath>
 #include <limits>

@@ -285,7 +285,7 @@ std::vector<at::Tensor> project_forward(at::Tensor means, at::Tensor quats, at::
     int32_t* ra = radii.data_ptr<int32_t>();
     const int deg = static_cast<int>(sh_degree);
     const int nb = (deg + 1) * (deg + 1);
-    at::parallel_for(0, N, 512, [&](int64_t begin, int64_t end) {
+    metegs::parallel_for(0, N, 512, [&](int64_t begin, int64_t end) {
       Projection<T> P;
       T basis[16], d[3], dn;
       for (int64_t g = begin; g < end; ++g) {
@@ -346,7 +346,7 @@ std::vector<at::Tensor> project_backward(at::Tensor means, at::Tensor quats, at:
     T *ogm = gm.data_ptr<T>(), *ogq = gq.data_ptr<T>(), *ogs = gs.data_ptr<T>(), *ogsh = gsh.data_ptr<T>();
     const int deg = static_cast<int>(sh_degree);
     const int nb = (deg + 1) * (deg + 1);
-    at::parallel_for(0, N, 512, [&](int64_t begin, int64_t end) {
+    metegs::parallel_for(0, N, 512, [&](int64_t begin, int64_t end) {
       Projection<T> P;
       T basis[16], bgrad[48], d[3], dn;
       for (int64_t g = begin; g < end; ++g) {
