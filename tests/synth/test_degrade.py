@@ -3,8 +3,8 @@
 import dataclasses
 
 import numpy as np
-import torch
 import pytest
+import torch
 
 from metegs.data.config import SyntheticSceneConfig
 from metegs.data.parsers.synthetic import build_scene
