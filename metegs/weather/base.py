@@ -37,6 +37,10 @@ class WeatherScene:
     def to_units(self, length_m: torch.Tensor | float) -> torch.Tensor | float:
         return length_m / self.metres_per_unit
 
+    def distance_m(self, points: torch.Tensor, view: int) -> torch.Tensor:
+        """Distance of world points [N, 3] (scene units) from the camera of view ``view``, in metres -> [N]."""
+        return self.to_metres((points - self.cameras.centers[view].to(points)).norm(dim=-1))
+
 
 class WeatherModel(torch.nn.Module):
     """A weather component built from θ for one scene.
@@ -74,11 +78,6 @@ class WeatherModel(torch.nn.Module):
         """Fraction of the light of world points [N, 3] (scene units) that this medium lets reach the camera of
         view ``view`` -> [N] in (0, 1], or None when the model does not attenuate the scene (the default)."""
         return None
-
-    def _distance_m(self, points: torch.Tensor, view: int) -> torch.Tensor:
-        """Distance of world points [N, 3] from the camera of view ``view`` in metres -> [N]."""
-        centre = self.scene.cameras.camera_to_worlds[view, :3, 3].to(points)
-        return (points - centre).norm(dim=-1) * self.scene.metres_per_unit
 
 
 @dataclass

@@ -90,4 +90,4 @@ class FogAnalytic(WeatherModel):
 
     def transmittance(self, points: torch.Tensor, view: int) -> torch.Tensor:
         """[N] exp(−β·d) of world points [N, 3] seen from view ``view``, averaged over R, G, B."""
-        return torch.exp(-self._distance_m(points, view)[:, None] * self.beta_rgb.detach().to(points)).mean(-1)
+        return torch.exp(-self.scene.distance_m(points, view)[:, None] * self.beta_rgb.detach().to(points)).mean(-1)

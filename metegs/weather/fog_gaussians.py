@@ -438,8 +438,6 @@ class FogGaussians(WeatherModel):
     def gaussians_for(self, view: int) -> GaussianSet | None:
         return self._gaussians
 
-    def transmittance(self, points: torch.Tensor, view: int) -> torch.Tensor | None:
+    def transmittance(self, points: torch.Tensor, view: int) -> torch.Tensor:
         """[N] exp(−β·d) of world points [N, 3] seen from view ``view`` (the medium the octree approximates)."""
-        if not self._active:
-            return None
-        return torch.exp(-self.beta_per_m * self._distance_m(points, view))
+        return torch.exp(-self.beta_per_m * self.scene.distance_m(points, view))

@@ -9,7 +9,7 @@
 // workers, and the caller returns once every chunk has run: a worker that wakes up late finds nothing left.
 //
 // Claims are validated against a generation number packed with the chunk counter (one 64-bit word), so a late
-// worker can never run a chunk of a job other than the one whose description it read (see `claim`).
+// worker can never run a chunk of a job other than the one whose description it read (see `work`).
 #pragma once
 
 #include <ATen/Parallel.h>
