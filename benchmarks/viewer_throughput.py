@@ -2,12 +2,15 @@
 
     python benchmarks/viewer_throughput.py                    # 2 threads, 3 repetitions, synthetic 160x120
     python benchmarks/viewer_throughput.py --threads 1 --steps 300 --repeats 5 --json out.json
+    python benchmarks/viewer_throughput.py --env GOMP_SPINCOUNT=0   # an OpenMP setting for both modes
 
-Each repetition trains `3dgs` on the built-in synthetic scene twice in this process, once alone and once
-with `metegs-train --viewer`'s live viewer attached and a headless Chromium showing it (the user watching
-the clean render while it trains). Steps/s are measured from step 20 on (after the page's start-up), and
-the table reports the median of each mode and the ratio. Needs Chromium and chromedriver (Debian:
-``apt-get install chromium chromium-driver``) and selenium.
+Each repetition trains `3dgs` on the built-in synthetic scene twice, once alone and once with `metegs-train
+--viewer`'s live viewer attached and a headless Chromium showing it (the user watching the clean render while
+it trains). Each run is its own Python process started with the environment `metegs-train` gives that mode
+(`metegs.cli.train.thread_env`: the viewer mode sets a short OpenMP spin, which libgomp reads only when
+torch loads), so the ratio is that of the two commands a user runs. Steps/s are measured from step 20 on
+(after the page's start-up), and the table reports the median of each mode and the ratio. Needs Chromium and
+chromedriver (Debian: ``apt-get install chromium chromium-driver``) and selenium.
 """
 
 from __future__ import annotations
@@ -17,17 +20,15 @@ import json
 import os
 import shutil
 import statistics
+import subprocess
+import sys
 import tempfile
 import time
 from dataclasses import replace
 from pathlib import Path
 
-import torch
 from rich.console import Console
 from rich.table import Table
-
-from metegs.data.config import DatasetConfig, SyntheticSceneConfig
-from metegs.registry import registry
 
 WARMUP_STEPS = 20
 """Steps not timed (Gaussian growth starts, caches fill, the page settles)."""
@@ -65,6 +66,9 @@ def browser_cpu_seconds() -> float:
 def train_rate(steps: int, threads: int, with_viewer: bool, out: Path, settle_s: float, window: str,
                with_browser: bool = True, render_share: float | None = None) -> dict:
     """Steps/s of one 3dgs run after the warm-up, with or without the viewer and a browser on it."""
+    from metegs.data.config import DatasetConfig, SyntheticSceneConfig
+    from metegs.registry import registry
+
     base = registry("method").get("3dgs")()
     config = replace(
         base, max_steps=steps, output_dir=out, experiment_name="viewer" if with_viewer else "alone", progress=False,
@@ -102,6 +106,26 @@ def train_rate(steps: int, threads: int, with_viewer: bool, out: Path, settle_s:
             "browser_cpu": browser_share, "browser": with_browser}
 
 
+def run_worker(mode: str, args: argparse.Namespace, out: Path) -> dict:
+    """One training run of ``mode`` ("alone" or "viewer") in a fresh process; its record."""
+    from metegs.cli.train import thread_env
+
+    env = dict(os.environ)
+    env.update(dict(kv.split("=", 1) for kv in args.env))
+    if mode == "viewer":
+        env.update({k: v for k, v in thread_env(["--viewer"]).items() if k not in env})
+    cmd = [sys.executable, __file__, "--worker", mode, "--steps", str(args.steps), "--threads", str(args.threads),
+           "--settle", str(args.settle), "--window", args.window, "--out", str(out)]
+    cmd += ["--no-browser"] if args.no_browser else []
+    cmd += [] if args.render_share is None else ["--render-share", str(args.render_share)]
+    done = subprocess.run(cmd, env=env, capture_output=True, text=True)
+    if done.returncode != 0:
+        raise RuntimeError(f"{mode} run failed:\n{done.stderr[-3000:]}")
+    record = json.loads(done.stdout.strip().splitlines()[-1])
+    record["env"] = {k: env[k] for k in sorted(env) if k.startswith(("GOMP_", "OMP_"))}
+    return record
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--threads", type=int, default=2, help="torch threads of training (0: torch's default)")
@@ -112,29 +136,43 @@ def main() -> None:
     parser.add_argument("--no-browser", action="store_true", help="attach the viewer but open no browser on it")
     parser.add_argument("--render-share", type=float, default=None,
                         help="the viewer's render_share while training (default: ViewerConfig's)")
+    parser.add_argument("--env", action="append", default=[], metavar="KEY=VALUE",
+                        help="environment variable for both modes' processes (repeatable), e.g. GOMP_SPINCOUNT=0")
     parser.add_argument("--json", type=Path, default=None, help="also write the records and the summary here")
+    parser.add_argument("--worker", choices=("alone", "viewer"), default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--out", type=Path, default=None, help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.worker is not None:  # one run, in this process: its record on the last stdout line
+        rec = train_rate(args.steps, args.threads, args.worker == "viewer", args.out, args.settle, args.window,
+                         not args.no_browser, args.render_share)
+        print(json.dumps(rec))
+        return
+    bad = [kv for kv in args.env if "=" not in kv]
+    if bad:
+        parser.error(f"--env needs KEY=VALUE, got {bad[0]!r}")
     console = Console()
     records = []
     with tempfile.TemporaryDirectory() as tmp:
         for rep in range(args.repeats):
-            for with_viewer in (False, True):
-                rec = train_rate(args.steps, args.threads, with_viewer, Path(tmp), args.settle, args.window,
-                                 not args.no_browser, args.render_share)
+            for mode in ("alone", "viewer"):
+                rec = run_worker(mode, args, Path(tmp))
                 records.append({**rec, "repeat": rep})
-                console.print(f"repeat {rep}: viewer={with_viewer} {rec['it_s']:.2f} it/s, frames {rec['frames']}"
-                              + ("" if rec["browser_cpu"] is None else f", browser {rec['browser_cpu']:.2f} of a core"))
+                console.print(f"repeat {rep}: {mode} {rec['it_s']:.2f} it/s, frames {rec['frames']}"
+                              + ("" if rec["browser_cpu"] is None else f", browser {rec['browser_cpu']:.2f} of a core")
+                              + (f", {rec['env']}" if rec["env"] else ""))
     alone = statistics.median(r["it_s"] for r in records if not r["viewer"])
     watched = statistics.median(r["it_s"] for r in records if r["viewer"])
+    browser_cpu = [r["browser_cpu"] for r in records if r["browser_cpu"] is not None]
     summary = {
-        "threads": args.threads, "torch_threads": torch.get_num_threads(), "steps": args.steps,
+        "threads": args.threads, "steps": args.steps, "env": args.env,
         "alone_it_s": alone, "viewer_it_s": watched, "ratio": watched / alone, "loss_percent": 100 * (1 - watched / alone),
+        "browser_cpu": statistics.median(browser_cpu) if browser_cpu else None,
     }
     table = Table(title=f"3dgs on the synthetic scene, {args.threads} thread(s), median of {args.repeats}")
     for col in ("mode", "it/s", "ratio"):
         table.add_column(col, justify="right")
     table.add_row("no viewer", f"{alone:.2f}", "1.00")
-    table.add_row("viewer + browser", f"{watched:.2f}", f"{watched / alone:.2f}")
+    table.add_row("viewer" + ("" if args.no_browser else " + browser"), f"{watched:.2f}", f"{watched / alone:.2f}")
     console.print(table)
     console.print(f"throughput loss with the viewer open: {summary['loss_percent']:.1f} %")
     if args.json is not None:

@@ -38,17 +38,16 @@ HEADERS = [CSRC / "metegs_cpu.h", CSRC / "pool.h"]
 _TORCH_TAG = "".join(ch if ch.isalnum() else "_" for ch in torch.__version__)
 EXTENSION_NAME = f"metegs_cpu_composite_{_TORCH_TAG}"
 
-# -march=native: the kernel's inner loops are written for SIMD (AVX2/AVX-512 here). The binary is
-# built on, and cached for, the machine that runs it; the cache folder also carries a tag of the
-# CPU model/flags so that a home directory shared between different machines does not load a
-# binary built for another CPU. -mprefer-vector-width=512 lets GCC use zmm registers where the CPU
-# has AVX-512 (about 1.4x on the Zen 5 CI machine; ignored elsewhere). -ffp-contract=off keeps
-# forward and backward alphas bit-identical (see the .cpp); -fno-trapping-math lets GCC if-convert
-# (vectorise) the pixel loops (no FP exceptions are used). -fopenmp-simd: the `omp simd` hints of the
-# pixel loops only; the kernels run on metegs' own pool (csrc/pool.h), not on OpenMP regions, whose closing
-# barriers wait for any descheduled thread (see pool.h).
+# -march=native: the compositing kernels work on 16-pixel tile rows as GCC vector types, which become
+# AVX-512 (or AVX2) instructions here. The binary is built on, and cached for, the machine that runs it;
+# the cache folder also carries a tag of the CPU model/flags so that a home directory shared between
+# different machines does not load a binary built for another CPU. -mprefer-vector-width=512 lets GCC use
+# zmm registers where the CPU has AVX-512 (ignored elsewhere). -ffp-contract=off keeps forward and backward
+# alphas bit-identical (see composite.cpp); -fno-trapping-math lets GCC if-convert (vectorise) the loops of
+# the other kernels (no FP exceptions are used). The kernels run on metegs' own pool (csrc/pool.h), not on
+# OpenMP regions, whose closing barriers wait for any descheduled thread (see pool.h).
 CFLAGS = [
-    "-O3", "-march=native", "-mprefer-vector-width=512", "-ffp-contract=off", "-fno-trapping-math", "-fopenmp-simd",
+    "-O3", "-march=native", "-mprefer-vector-width=512", "-ffp-contract=off", "-fno-trapping-math",
 ]
 
 

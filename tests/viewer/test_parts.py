@@ -168,6 +168,22 @@ def test_command_line_flags():
     assert tyro.cli(ViewArgs, args=["some/run"]).host == "127.0.0.1"
 
 
+def test_live_viewer_sets_a_short_openmp_spin_before_torch_loads(monkeypatch):
+    import subprocess
+    import sys
+
+    from metegs.cli.train import LIVE_VIEWER_ENV, thread_env
+
+    monkeypatch.delenv("GOMP_SPINCOUNT", raising=False)
+    assert thread_env(["3dgs", "--viewer"]) == LIVE_VIEWER_ENV
+    assert thread_env(["3dgs"]) == {}
+    monkeypatch.setenv("GOMP_SPINCOUNT", "INFINITE")  # the user's own setting wins
+    assert "GOMP_SPINCOUNT" not in thread_env(["3dgs", "--viewer"])
+    # libgomp reads the variable once, when torch loads: metegs-train's module must not load torch itself
+    probe = "import sys, metegs.cli.train; print('torch' in sys.modules)"
+    assert subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True).stdout.strip() == "False"
+
+
 def test_pose_dataclass_is_hashable():
     p = ViewPose((1.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 1.0, 1.5)
     assert hash(p) == hash(ViewPose((1.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 1.0, 1.5))

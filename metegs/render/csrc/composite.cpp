@@ -7,12 +7,15 @@
 //
 // Layout (the design that measured fastest on CPU, see shared/research/cpu-rasteriser.md): threads
 // take whole tiles from a shared counter (dynamic scheduling on metegs::parallel_for's pool, pool.h,
-// sized by torch's intra-op thread count); inside a tile the Gaussians are the outer loop and the 256 pixels the inner,
-// branch-free, vectorised loop (with a polynomial exp for float32). The forward saves per pixel
-// the final transmittance and the number of list entries it used; the backward walks back to
-// front from that state, recovering T_i = T_{i+1} / (1 - alpha_i) (alpha <= 0.99, so stable).
-// Gradients are written per intersection (tile, list position) — every slot has one owner, so no
-// atomics — and then summed per Gaussian in list order. Deterministic.
+// sized by torch's intra-op thread count); inside a tile the Gaussians are the outer loop and the tile's
+// rows the inner one, each row of 16 pixels one vector (GCC vector extensions: one AVX-512 register for
+// float32, two AVX2 ones elsewhere) with a polynomial exp for float32. Per Gaussian, the column terms of the
+// conic's quadratic form (a dx^2, b dx) are computed once and each row adds its own (c dy^2, dy), and the
+// backward's sums stay in vector registers until the Gaussian's last row. The forward saves per pixel the
+// final transmittance and the number of list entries it used; the backward walks back to front from that
+// state, recovering T_i = T_{i+1} / (1 - alpha_i) (alpha <= 0.99, so stable), and skips the rows whose pixels
+// all stopped before the Gaussian. Gradients are written per intersection (tile, list position) — every slot
+// has one owner, so no atomics — and then summed per Gaussian in list order. Deterministic.
 //
 // Built with -ffp-contract=off so that the forward and the backward recompute bit-identical alphas
 // (the skip decision alpha >= 1/255 must agree) and the operation order matches the torch code.
@@ -27,6 +30,7 @@
 #include <cstdint>
 #include <cstring>
 #include <limits>
+#include <type_traits>
 #include <vector>
 
 namespace metegs_cpu {
@@ -35,6 +39,42 @@ namespace {
 constexpr int TS = TILE;
 constexpr int TP = TS * TS;   // pixels per tile
 constexpr int NGRAD = 7;      // per-intersection geometry gradients: mx, my, a, b, c, opacity, depth
+static_assert(TS == 16, "a tile row is one 16-lane vector");
+
+// A tile row: 16 lanes of scalar_t (Vec) and the lane masks / integers of the same width (Mask, MaskInt).
+template <typename S, int N>
+struct VecN {
+  typedef S type __attribute__((vector_size(N * sizeof(S))));
+};
+template <typename scalar_t>
+using Vec = typename VecN<scalar_t, TS>::type;
+template <typename scalar_t>
+using MaskInt = std::conditional_t<sizeof(scalar_t) == 4, int32_t, int64_t>;
+template <typename scalar_t>
+using Mask = typename VecN<MaskInt<scalar_t>, TS>::type;
+
+template <typename V, typename S>
+inline __attribute__((always_inline)) V splat(S s) {
+  return V{} + s;
+}
+
+// Sum of the N lanes of v by halving (log2 N vector additions), always in the same order: deterministic.
+template <typename S, int N>
+inline __attribute__((always_inline)) S hsum(typename VecN<S, N>::type v) {
+  if constexpr (N == 2) {
+    return v[0] + v[1];
+  } else {
+    typename VecN<S, N / 2>::type lo, hi;
+    std::memcpy(&lo, &v, sizeof(lo));
+    std::memcpy(&hi, reinterpret_cast<const char*>(&v) + sizeof(lo), sizeof(hi));
+    return hsum<S, N / 2>(lo + hi);
+  }
+}
+
+template <typename scalar_t>
+inline __attribute__((always_inline)) scalar_t row_sum(Vec<scalar_t> v) {
+  return hsum<scalar_t, TS>(v);
+}
 
 template <typename scalar_t>
 struct Consts {
@@ -43,76 +83,70 @@ struct Consts {
   static constexpr scalar_t t_min = scalar_t(1e-4);
 };
 
-// exp(x) for x <= 0. float: Cephes-style range reduction + degree-6 polynomial (about 1 ulp),
-// branch-free so that GCC vectorises the pixel loop; double: libm (used for gradcheck).
+// exp(x) for x <= 0, per lane. float: Cephes-style range reduction + degree-6 polynomial (about 1 ulp),
+// branch-free; double: libm lane by lane (used for gradcheck).
 // The float argument is clamped at -20: exp(-20) = 2e-9 is far below alpha_min / o for any opacity
 // o <= 1 (every alpha below 1/255 is skipped, so the clamp changes no output or gradient), and
 // without it most pixels of a small Gaussian's rows produce subnormal floats (exp(-87) = 2^-126),
 // whose arithmetic is many times slower than normal floats.
-template <typename scalar_t>
-inline __attribute__((always_inline)) scalar_t neg_exp(scalar_t x);
-
-template <>
-inline __attribute__((always_inline)) float neg_exp<float>(float x) {
-  x = x < -20.0f ? -20.0f : x;
+inline __attribute__((always_inline)) Vec<float> neg_exp(Vec<float> x) {
+  using V = Vec<float>;
+  const V lo = splat<V>(-20.0f);
+  x = x < lo ? lo : x;
   // round(x / ln 2) with the 1.5 * 2^23 trick (exact for |x / ln 2| < 2^22; no -ffast-math here).
-  const float t = x * 1.44269504088896341f + 12582912.0f;
-  const float n = t - 12582912.0f;
-  float r = x - n * 0.693359375f;
+  const V t = x * 1.44269504088896341f + 12582912.0f;
+  const V n = t - 12582912.0f;
+  V r = x - n * 0.693359375f;
   r = r - n * -2.12194440e-4f;
-  float p = 1.9875691500e-4f;
+  V p = splat<V>(1.9875691500e-4f);
   p = p * r + 1.3981999507e-3f;
   p = p * r + 8.3334519073e-3f;
   p = p * r + 4.1665795894e-2f;
   p = p * r + 1.6666665459e-1f;
   p = p * r + 5.0000001201e-1f;
-  const float y = p * (r * r) + r + 1.0f;
-  const int32_t bits = (static_cast<int32_t>(n) + 127) << 23;  // n in [-126, 0]: a normal 2^n
-  float scale;
-  std::memcpy(&scale, &bits, sizeof(float));
-  return y * scale;
+  const V y = p * (r * r) + r + 1.0f;
+  const Mask<float> bits = (__builtin_convertvector(n, Mask<float>) + 127) << 23;  // n in [-126, 0]: a normal 2^n
+  return y * (V)bits;
 }
 
-template <>
-inline __attribute__((always_inline)) double neg_exp<double>(double x) {
-  return std::exp(x);
+inline __attribute__((always_inline)) Vec<double> neg_exp(Vec<double> x) {
+  for (int i = 0; i < TS; ++i) x[i] = std::exp(x[i]);
+  return x;
 }
 
-// One Gaussian's alpha at one pixel centre, the single definition used by forward and backward so that
-// both compute it bit-identically (the skip decision alpha >= 1/255 must agree).
+// One Gaussian's alphas on one tile row, the single definition used by forward and backward so that both
+// compute them bit-identically (the skip decision alpha >= 1/255 must agree). adx2 = (a dx) dx and
+// bdx = b dx are the Gaussian's column terms; dy the row's offset from its centre.
 template <typename scalar_t>
-struct PixelAlpha {
-  scalar_t dx, dy, power, e, oe, alpha;  // offset, exponent, exp(min(power, 0)), o e, min(o e, alpha_max)
+struct RowAlpha {
+  Vec<scalar_t> power, e, oe, alpha;  // exponent, exp(min(power, 0)), o e, min(o e, alpha_max)
 };
 
 template <typename scalar_t>
-inline __attribute__((always_inline)) PixelAlpha<scalar_t> pixel_alpha(scalar_t px, scalar_t py, scalar_t mx,
-                                                                       scalar_t my, scalar_t a, scalar_t b,
-                                                                       scalar_t c, scalar_t o) {
-  PixelAlpha<scalar_t> r;
-  r.dx = px - mx;
-  r.dy = py - my;
-  r.power = scalar_t(-0.5) * ((a * r.dx * r.dx) + (c * r.dy * r.dy)) - (b * r.dx) * r.dy;
-  r.e = neg_exp<scalar_t>(r.power < scalar_t(0) ? r.power : scalar_t(0));
+inline __attribute__((always_inline)) RowAlpha<scalar_t> row_alpha(Vec<scalar_t> adx2, Vec<scalar_t> bdx,
+                                                                   scalar_t dy, scalar_t c, scalar_t o) {
+  using V = Vec<scalar_t>;
+  const V zero = V{}, amax = splat<V>(Consts<scalar_t>::alpha_max);
+  RowAlpha<scalar_t> r;
+  r.power = scalar_t(-0.5) * (adx2 + (c * dy) * dy) - bdx * dy;
+  r.e = neg_exp(r.power < zero ? r.power : zero);
   r.oe = o * r.e;
-  r.alpha = r.oe < Consts<scalar_t>::alpha_max ? r.oe : Consts<scalar_t>::alpha_max;
+  r.alpha = r.oe < amax ? r.oe : amax;
   return r;
 }
 
-// Pixel range [pbeg, pend) of a tile (whole rows, row-major) outside which a Gaussian's alpha stays
-// below 1/255 (h: its row_half_height). Skipping the other rows changes nothing (their alpha would be
-// skipped) and saves most of the work of Gaussians smaller than a tile.
+// Rows [r0, r1) of a tile outside which a Gaussian's alpha stays below 1/255 (h: its row_half_height).
+// Skipping the other rows changes nothing (their alpha would be skipped) and saves most of the work of
+// Gaussians smaller than a tile.
 template <typename scalar_t>
-inline void row_range(scalar_t my, double h, int64_t y0, int& pbeg, int& pend) {
-  pbeg = 0;
-  pend = TP;
+inline void row_range(scalar_t my, double h, int64_t y0, int& r0, int& r1) {
+  r0 = 0;
+  r1 = TS;
   if (!(h < std::numeric_limits<double>::infinity())) return;
   const double lo = std::ceil(double(my) - h - 0.5) - double(y0);
   const double hi = std::floor(double(my) + h - 0.5) - double(y0) + 1.0;
-  const int r0 = static_cast<int>(std::min(std::max(lo, 0.0), double(TS)));
-  const int r1 = static_cast<int>(std::min(std::max(hi, 0.0), double(TS)));
-  pbeg = r0 * TS;
-  pend = std::max(r1, r0) * TS;
+  r0 = static_cast<int>(std::min(std::max(lo, 0.0), double(TS)));
+  r1 = std::max(r0, static_cast<int>(std::min(std::max(hi, 0.0), double(TS))));
 }
 
 // Runs `worker` once per intra-op thread (at::get_num_threads()); workers pull tiles from a shared counter, and a
@@ -125,11 +159,19 @@ void run_on_threads(F&& worker) {
   });
 }
 
-// Colour channels as a compile-time constant (DC > 0: the pixel loops carry the colours in registers)
-// or a run-time one (DC == 0: one extra pass over the pixels per channel).
+// Colour channels as a compile-time constant (DC > 0: the row loops carry the colours in registers)
+// or a run-time one (DC == 0: one extra pass over the rows per channel).
 template <int DC>
 inline int64_t channels(int64_t D) {
   return DC > 0 ? DC : D;
+}
+
+// The column offsets x0 + c + 0.5 of a tile (c = 0..15).
+template <typename scalar_t>
+inline Vec<scalar_t> column_centres(int64_t x0) {
+  Vec<scalar_t> v;
+  for (int c = 0; c < TS; ++c) v[c] = static_cast<scalar_t>(x0 + c) + scalar_t(0.5);
+  return v;
 }
 
 template <typename scalar_t, int DC>
@@ -142,33 +184,31 @@ void forward_kernel(const scalar_t* __restrict__ means2d, const scalar_t* __rest
                     scalar_t* __restrict__ out_depth, scalar_t* __restrict__ out_T,
                     int32_t* __restrict__ out_last) {
   using C = Consts<scalar_t>;
+  using V = Vec<scalar_t>;
+  using M = Mask<scalar_t>;
   const int64_t D = channels<DC>(D_);
   const int64_t ntiles = tiles_x * tiles_y;
   std::atomic<int64_t> next{0};
   run_on_threads([&]() {
-    // Masks are kept as 0/1 floating-point values and every branch is a select: GCC only
-    // vectorises the pixel loop in that form.
-    alignas(64) scalar_t px[TP], py[TP], T[TP], dep[TP], w[TP], done[TP];
-    alignas(64) int32_t last[TP];
-    std::vector<scalar_t> colbuf(std::max<int64_t>(D, 3) * TP);
-    scalar_t* __restrict__ col = colbuf.data();  // [D][TP]
-    scalar_t* __restrict__ col0 = col;
-    scalar_t* __restrict__ col1 = col + TP;
-    scalar_t* __restrict__ col2 = col + 2 * TP;
+    // Masks are kept as 0/1 values (as the torch reference's arithmetic) and every branch is a lane select.
+    V T[TS], dep[TS], w[TS], done[TS], col3[3][TS];
+    M last[TS];
+    std::vector<V> colbuf(DC == 3 ? 0 : D * TS);  // [D][row] for DC == 0
+    const V zero = V{}, one = splat<V>(scalar_t(1)), half = splat<V>(scalar_t(0.5));
+    const V amin = splat<V>(C::alpha_min), tmin = splat<V>(C::t_min);
     for (;;) {
       const int64_t t = next.fetch_add(1, std::memory_order_relaxed);
       if (t >= ntiles) break;
       const int64_t x0 = (t % tiles_x) * TS, y0 = (t / tiles_x) * TS;
-      for (int p = 0; p < TP; ++p) {
-        const int64_t x = x0 + (p % TS), y = y0 + (p / TS);
-        px[p] = static_cast<scalar_t>(x) + scalar_t(0.5);
-        py[p] = static_cast<scalar_t>(y) + scalar_t(0.5);
-        T[p] = scalar_t(1);
-        dep[p] = scalar_t(0);
-        last[p] = 0;
-        done[p] = (x < W && y < H) ? scalar_t(0) : scalar_t(1);  // padding pixels never composite
+      const V px = column_centres<scalar_t>(x0);
+      for (int r = 0; r < TS; ++r) {
+        T[r] = one;
+        dep[r] = zero;
+        last[r] = M{};
+        for (int c = 0; c < TS; ++c) done[r][c] = (x0 + c < W && y0 + r < H) ? scalar_t(0) : scalar_t(1);  // padding
+        for (int d = 0; d < 3; ++d) col3[d][r] = zero;
       }
-      std::fill(col, col + D * TP, scalar_t(0));
+      std::fill(colbuf.begin(), colbuf.end(), zero);
       const int64_t off = offsets[t];
       const int64_t n = offsets[t + 1] - off;
       for (int64_t j = 0; j < n; ++j) {
@@ -176,56 +216,59 @@ void forward_kernel(const scalar_t* __restrict__ means2d, const scalar_t* __rest
         const scalar_t mx = means2d[2 * g], my = means2d[2 * g + 1];
         const scalar_t a = conics[3 * g], b = conics[3 * g + 1], c = conics[3 * g + 2];
         const scalar_t o = opac[g], z = depths[g];
-        const scalar_t c0 = DC == 3 ? colors[3 * g] : scalar_t(0);
-        const scalar_t c1 = DC == 3 ? colors[3 * g + 1] : scalar_t(0);
-        const scalar_t c2 = DC == 3 ? colors[3 * g + 2] : scalar_t(0);
-        const int32_t jp1 = static_cast<int32_t>(j + 1);
-        int pbeg, pend;
-        row_range(my, rows[g], y0, pbeg, pend);
-#pragma omp simd
-        for (int p = pbeg; p < pend; ++p) {
-          const scalar_t alpha = pixel_alpha(px[p], py[p], mx, my, a, b, c, o).alpha;
-          const scalar_t valid = alpha >= C::alpha_min ? scalar_t(1) - done[p] : scalar_t(0);
-          const scalar_t Tn = T[p] * (scalar_t(1) - alpha);
-          const scalar_t stop = Tn < C::t_min ? valid : scalar_t(0);  // T would fall below T_MIN
-          const scalar_t contrib = valid - stop;
-          const scalar_t wv = contrib * (alpha * T[p]);
-          dep[p] += wv * z;
-          T[p] = contrib > scalar_t(0.5) ? Tn : T[p];
-          last[p] = contrib > scalar_t(0.5) ? jp1 : last[p];
-          done[p] += stop;
+        const M jp1 = M{} + static_cast<MaskInt<scalar_t>>(j + 1);
+        int r0, r1;
+        row_range(my, rows[g], y0, r0, r1);
+        const V dx = px - mx, adx2 = (a * dx) * dx, bdx = b * dx;
+        for (int r = r0; r < r1; ++r) {
+          const scalar_t dy = (static_cast<scalar_t>(y0 + r) + scalar_t(0.5)) - my;
+          const V alpha = row_alpha<scalar_t>(adx2, bdx, dy, c, o).alpha;
+          const V valid = alpha >= amin ? one - done[r] : zero;
+          const V Tn = T[r] * (one - alpha);
+          const V stop = Tn < tmin ? valid : zero;  // T would fall below T_MIN
+          const V contrib = valid - stop;
+          const V wv = contrib * (alpha * T[r]);
+          dep[r] += wv * z;
+          const M used = contrib > half;
+          T[r] = used ? Tn : T[r];
+          last[r] = used ? jp1 : last[r];
+          done[r] += stop;
           if constexpr (DC == 3) {
-            col0[p] += wv * c0;
-            col1[p] += wv * c1;
-            col2[p] += wv * c2;
+            col3[0][r] += wv * colors[3 * g];
+            col3[1][r] += wv * colors[3 * g + 1];
+            col3[2][r] += wv * colors[3 * g + 2];
           } else {
-            w[p] = wv;
+            w[r] = wv;
           }
         }
         if constexpr (DC != 3) {
           for (int64_t d = 0; d < D; ++d) {
             const scalar_t cd = colors[g * D + d];
-            scalar_t* __restrict__ cr = col + d * TP;
-#pragma omp simd
-            for (int p = pbeg; p < pend; ++p) cr[p] += w[p] * cd;
+            V* cr = colbuf.data() + d * TS;
+            for (int r = r0; r < r1; ++r) cr[r] += w[r] * cd;
           }
         }
         if ((j & 7) == 7) {  // whole-tile early exit
-          scalar_t nd = 0;
-#pragma omp simd reduction(+ : nd)
-          for (int p = 0; p < TP; ++p) nd += done[p];
-          if (nd >= scalar_t(TP)) break;
+          V nd = zero;
+          for (int r = 0; r < TS; ++r) nd += done[r];
+          if (row_sum<scalar_t>(nd) >= scalar_t(TP)) break;
         }
       }
-      for (int p = 0; p < TP; ++p) {
-        out_T[t * TP + p] = T[p];
-        out_last[t * TP + p] = last[p];
-        const int64_t x = x0 + (p % TS), y = y0 + (p / TS);
-        if (x >= W || y >= H) continue;
-        const int64_t pix = y * W + x;
-        out_alpha[pix] = scalar_t(1) - T[p];
-        out_depth[pix] = dep[p];
-        for (int64_t d = 0; d < D; ++d) out_color[pix * D + d] = col[d * TP + p];
+      for (int r = 0; r < TS; ++r) {
+        for (int cx = 0; cx < TS; ++cx) {
+          const int p = r * TS + cx;
+          out_T[t * TP + p] = T[r][cx];
+          out_last[t * TP + p] = static_cast<int32_t>(last[r][cx]);
+          const int64_t x = x0 + cx, y = y0 + r;
+          if (x >= W || y >= H) continue;
+          const int64_t pix = y * W + x;
+          out_alpha[pix] = scalar_t(1) - T[r][cx];
+          out_depth[pix] = dep[r][cx];
+          for (int64_t d = 0; d < D; ++d) {
+            if constexpr (DC == 3) out_color[pix * D + d] = col3[d][r][cx];
+            else out_color[pix * D + d] = colbuf[d * TS + r][cx];
+          }
+        }
       }
     }
   });
@@ -242,23 +285,22 @@ void backward_kernel(const scalar_t* __restrict__ means2d, const scalar_t* __res
                      int64_t H,
                      scalar_t* __restrict__ out) {
   using C = Consts<scalar_t>;
+  using V = Vec<scalar_t>;
+  using M = Mask<scalar_t>;
   const int64_t D = channels<DC>(D_);
   const int64_t ntiles = tiles_x * tiles_y;
   const int64_t stride = NGRAD + D;
   std::atomic<int64_t> next{0};
   run_on_threads([&]() {
-    alignas(64) scalar_t px[TP], py[TP], T[TP], Tf[TP], gA[TP], gD[TP], restZ[TP], s[TP], av[TP], w[TP];
-    alignas(64) int32_t last[TP];
-    const int64_t Dbuf = std::max<int64_t>(D, 3);
-    std::vector<scalar_t> buf(2 * Dbuf * TP);
-    scalar_t* __restrict__ gC = buf.data();                 // [D][TP] dL/dcolor image
-    scalar_t* __restrict__ restC = buf.data() + Dbuf * TP;  // [D][TP] colour behind
-    const scalar_t* __restrict__ gC0 = gC;
-    const scalar_t* __restrict__ gC1 = gC + TP;
-    const scalar_t* __restrict__ gC2 = gC + 2 * TP;
-    scalar_t* __restrict__ rC0 = restC;
-    scalar_t* __restrict__ rC1 = restC + TP;
-    scalar_t* __restrict__ rC2 = restC + 2 * TP;
+    V T[TS], Tf[TS], gA[TS], gD[TS], restZ[TS], s[TS], av[TS], w[TS];
+    V gC3[3][TS], rC3[3][TS];  // DC == 3: dL/dcolour image and the colour composited behind, per channel
+    M last[TS];
+    int32_t row_last[TS];  // per row, the largest list length a pixel used
+    std::vector<V> buf(DC == 3 ? 0 : 2 * D * TS);
+    V* gC = buf.data();           // DC == 0: [D][row]
+    V* restC = gC + (DC == 3 ? 0 : D * TS);
+    const V zero = V{}, one = splat<V>(scalar_t(1)), half = splat<V>(scalar_t(0.5));
+    const V amin = splat<V>(C::alpha_min), amax = splat<V>(C::alpha_max);
     for (;;) {
       const int64_t t = next.fetch_add(1, std::memory_order_relaxed);
       if (t >= ntiles) break;
@@ -266,120 +308,118 @@ void backward_kernel(const scalar_t* __restrict__ means2d, const scalar_t* __res
       const int64_t n = offsets[t + 1] - off;
       if (n == 0) continue;
       const int64_t x0 = (t % tiles_x) * TS, y0 = (t / tiles_x) * TS;
+      const V px = column_centres<scalar_t>(x0);
       int32_t jmax = 0;
-      for (int p = 0; p < TP; ++p) jmax = std::max(jmax, saved_last[t * TP + p]);
+      for (int r = 0; r < TS; ++r) {
+        row_last[r] = 0;
+        for (int cx = 0; cx < TS; ++cx) {
+          const int p = r * TS + cx;
+          const int64_t x = x0 + cx, y = y0 + r;
+          const bool in = x < W && y < H;
+          const int64_t pix = in ? y * W + x : 0;
+          T[r][cx] = Tf[r][cx] = saved_T[t * TP + p];
+          last[r][cx] = saved_last[t * TP + p];
+          row_last[r] = std::max(row_last[r], saved_last[t * TP + p]);
+          gA[r][cx] = in ? g_alpha[pix] : scalar_t(0);
+          gD[r][cx] = in ? g_depth[pix] : scalar_t(0);
+          for (int64_t d = 0; d < D; ++d) {
+            const scalar_t gcd = in ? g_color[pix * D + d] : scalar_t(0);
+            if constexpr (DC == 3) gC3[d][r][cx] = gcd;
+            else gC[d * TS + r][cx] = gcd;
+          }
+        }
+        jmax = std::max(jmax, row_last[r]);
+        restZ[r] = zero;
+        for (int d = 0; d < 3; ++d) rC3[d][r] = zero;
+      }
+      std::fill(buf.begin() + (DC == 3 ? 0 : D * TS), buf.end(), zero);
       // list entries no pixel reached get zero gradients
       std::fill(out + (off + jmax) * stride, out + (off + n) * stride, scalar_t(0));
-      for (int p = 0; p < TP; ++p) {
-        const int64_t x = x0 + (p % TS), y = y0 + (p / TS);
-        px[p] = static_cast<scalar_t>(x) + scalar_t(0.5);
-        py[p] = static_cast<scalar_t>(y) + scalar_t(0.5);
-        T[p] = Tf[p] = saved_T[t * TP + p];
-        last[p] = saved_last[t * TP + p];
-        restZ[p] = scalar_t(0);
-        const bool in = x < W && y < H;
-        const int64_t pix = in ? y * W + x : 0;
-        gA[p] = in ? g_alpha[pix] : scalar_t(0);
-        gD[p] = in ? g_depth[pix] : scalar_t(0);
-        for (int64_t d = 0; d < D; ++d) {
-          gC[d * TP + p] = in ? g_color[pix * D + d] : scalar_t(0);
-          restC[d * TP + p] = scalar_t(0);
-        }
-      }
       for (int64_t j = static_cast<int64_t>(jmax) - 1; j >= 0; --j) {
         const int64_t g = ids[off + j];
         const scalar_t mx = means2d[2 * g], my = means2d[2 * g + 1];
         const scalar_t a = conics[3 * g], b = conics[3 * g + 1], c = conics[3 * g + 2];
         const scalar_t o = opac[g], z = depths[g];
         const scalar_t* __restrict__ cg = colors + g * D;
-        const scalar_t c0 = DC == 3 ? cg[0] : scalar_t(0);
-        const scalar_t c1 = DC == 3 ? cg[1] : scalar_t(0);
-        const scalar_t c2 = DC == 3 ? cg[2] : scalar_t(0);
-        const int32_t jj = static_cast<int32_t>(j);
-        int pbeg, pend;
-        row_range(my, rows[g], y0, pbeg, pend);
-        if constexpr (DC != 3) {
-          // s = sum_d (c_d - colour composited behind) * dL/dC_d: needs no alpha of this Gaussian.
-#pragma omp simd
-          for (int p = pbeg; p < pend; ++p) s[p] = scalar_t(0);
-          for (int64_t d = 0; d < D; ++d) {
-            const scalar_t cd = cg[d];
-            const scalar_t* __restrict__ gc = gC + d * TP;
-            const scalar_t* __restrict__ rc = restC + d * TP;
-#pragma omp simd
-            for (int p = pbeg; p < pend; ++p) s[p] += (cd - rc[p]) * gc[p];
+        const M jj = M{} + static_cast<MaskInt<scalar_t>>(j);
+        int r0, r1;
+        row_range(my, rows[g], y0, r0, r1);
+        const V dx = px - mx, adx2 = (a * dx) * dx, bdx = b * dx;
+        const V adx = a * dx, ndx = -dx, hdx2 = (scalar_t(-0.5) * dx) * dx;
+        V gmx = zero, gmy = zero, ga = zero, gb = zero, gc_ = zero, go = zero, gz = zero;
+        V gk0 = zero, gk1 = zero, gk2 = zero;
+        for (int r = r0; r < r1; ++r) {
+          if (row_last[r] <= j) continue;  // every pixel of the row stopped before this Gaussian
+          if constexpr (DC != 3) {
+            // s = sum_d (c_d - colour composited behind) * dL/dC_d: needs no alpha of this Gaussian.
+            V sr = zero;
+            for (int64_t d = 0; d < D; ++d) sr += (cg[d] - restC[d * TS + r]) * gC[d * TS + r];
+            s[r] = sr;
           }
-        }
-        scalar_t gmx = 0, gmy = 0, ga = 0, gb = 0, gc_ = 0, go = 0, gz = 0, gk0 = 0, gk1 = 0, gk2 = 0;
-#pragma omp simd reduction(+ : gmx, gmy, ga, gb, gc_, go, gz, gk0, gk1, gk2)
-        for (int p = pbeg; p < pend; ++p) {
-          const auto pa = pixel_alpha(px[p], py[p], mx, my, a, b, c, o);
-          const scalar_t dx = pa.dx, dy = pa.dy, power = pa.power, e = pa.e, oe = pa.oe, alpha = pa.alpha;
-          const scalar_t listed = jj < last[p] ? scalar_t(1) : scalar_t(0);
-          const scalar_t valid = alpha >= C::alpha_min ? listed : scalar_t(0);
-          const scalar_t inv_om = scalar_t(1) / (scalar_t(1) - alpha);  // alpha <= 0.99
-          const scalar_t Tdiv = T[p] * inv_om;
-          const scalar_t Tj = valid > scalar_t(0.5) ? Tdiv : T[p];  // transmittance in front of it
-          const scalar_t a_v = valid * alpha;
-          const scalar_t wv = a_v * Tj;
-          scalar_t sp;
+          const scalar_t dy = (static_cast<scalar_t>(y0 + r) + scalar_t(0.5)) - my;
+          const auto ra = row_alpha<scalar_t>(adx2, bdx, dy, c, o);
+          const V power = ra.power, e = ra.e, oe = ra.oe, alpha = ra.alpha;
+          const V listed = jj < last[r] ? one : zero;
+          const V valid = alpha >= amin ? listed : zero;
+          const V inv_om = one / (one - alpha);  // alpha <= 0.99
+          const V Tdiv = T[r] * inv_om;
+          const V Tj = valid > half ? Tdiv : T[r];  // transmittance in front of it
+          const V a_v = valid * alpha;
+          const V wv = a_v * Tj;
+          V sp;
           if constexpr (DC == 3) {
-            sp = (c0 - rC0[p]) * gC0[p];
-            sp += (c1 - rC1[p]) * gC1[p];
-            sp += (c2 - rC2[p]) * gC2[p];
+            sp = (cg[0] - rC3[0][r]) * gC3[0][r];
+            sp += (cg[1] - rC3[1][r]) * gC3[1][r];
+            sp += (cg[2] - rC3[2][r]) * gC3[2][r];
           } else {
-            sp = s[p];
+            sp = s[r];
           }
           // d(colour, depth)/dalpha = T_j (c - behind); d(1 - T_final)/dalpha = T_final / (1 - alpha)
-          const scalar_t dLda = Tj * (sp + (z - restZ[p]) * gD[p]) + gA[p] * Tf[p] * inv_om;
-          const scalar_t unclamped = oe <= C::alpha_max ? valid : scalar_t(0);
-          const scalar_t dLdoe = unclamped > scalar_t(0.5) ? dLda : scalar_t(0);
+          const V dLda = Tj * (sp + (z - restZ[r]) * gD[r]) + gA[r] * Tf[r] * inv_om;
+          const V unclamped = oe <= amax ? valid : zero;
+          const V dLdoe = unclamped > half ? dLda : zero;
           go += dLdoe * e;
-          const scalar_t dLdpow = power <= scalar_t(0) ? dLdoe * oe : scalar_t(0);
-          ga += dLdpow * (scalar_t(-0.5) * dx * dx);
-          gc_ += dLdpow * (scalar_t(-0.5) * dy * dy);
-          gb += dLdpow * (-dx * dy);
-          gmx += dLdpow * (a * dx + b * dy);  // dpower/dmx = -dpower/ddx
-          gmy += dLdpow * (c * dy + b * dx);
-          gz += wv * gD[p];
-          restZ[p] = restZ[p] * (scalar_t(1) - a_v) + a_v * z;
-          T[p] = Tj;
+          const V dLdpow = power <= zero ? dLdoe * oe : zero;
+          ga += dLdpow * hdx2;
+          gc_ += dLdpow * ((scalar_t(-0.5) * dy) * dy);
+          gb += dLdpow * (ndx * dy);
+          gmx += dLdpow * (adx + b * dy);  // dpower/dmx = -dpower/ddx
+          gmy += dLdpow * ((c * dy) + bdx);
+          gz += wv * gD[r];
+          restZ[r] = restZ[r] * (one - a_v) + a_v * z;
+          T[r] = Tj;
           if constexpr (DC == 3) {
-            gk0 += wv * gC0[p];
-            gk1 += wv * gC1[p];
-            gk2 += wv * gC2[p];
-            rC0[p] = rC0[p] * (scalar_t(1) - a_v) + a_v * c0;
-            rC1[p] = rC1[p] * (scalar_t(1) - a_v) + a_v * c1;
-            rC2[p] = rC2[p] * (scalar_t(1) - a_v) + a_v * c2;
+            gk0 += wv * gC3[0][r];
+            gk1 += wv * gC3[1][r];
+            gk2 += wv * gC3[2][r];
+            for (int d = 0; d < 3; ++d) rC3[d][r] = rC3[d][r] * (one - a_v) + a_v * cg[d];
           } else {
-            av[p] = a_v;
-            w[p] = wv;
+            av[r] = a_v;
+            w[r] = wv;
           }
         }
         scalar_t* __restrict__ o_row = out + (off + j) * stride;
-        o_row[0] = gmx;
-        o_row[1] = gmy;
-        o_row[2] = ga;
-        o_row[3] = gb;
-        o_row[4] = gc_;
-        o_row[5] = go;
-        o_row[6] = gz;
+        o_row[0] = row_sum<scalar_t>(gmx);
+        o_row[1] = row_sum<scalar_t>(gmy);
+        o_row[2] = row_sum<scalar_t>(ga);
+        o_row[3] = row_sum<scalar_t>(gb);
+        o_row[4] = row_sum<scalar_t>(gc_);
+        o_row[5] = row_sum<scalar_t>(go);
+        o_row[6] = row_sum<scalar_t>(gz);
         if constexpr (DC == 3) {
-          o_row[NGRAD] = gk0;
-          o_row[NGRAD + 1] = gk1;
-          o_row[NGRAD + 2] = gk2;
+          o_row[NGRAD] = row_sum<scalar_t>(gk0);
+          o_row[NGRAD + 1] = row_sum<scalar_t>(gk1);
+          o_row[NGRAD + 2] = row_sum<scalar_t>(gk2);
         } else {
           for (int64_t d = 0; d < D; ++d) {
             const scalar_t cd = cg[d];
-            const scalar_t* __restrict__ gc = gC + d * TP;
-            scalar_t* __restrict__ rc = restC + d * TP;
-            scalar_t gcol = 0;
-#pragma omp simd reduction(+ : gcol)
-            for (int p = pbeg; p < pend; ++p) {
-              gcol += w[p] * gc[p];
-              rc[p] = rc[p] * (scalar_t(1) - av[p]) + av[p] * cd;
+            V gcol = zero;
+            for (int r = r0; r < r1; ++r) {
+              if (row_last[r] <= j) continue;
+              gcol += w[r] * gC[d * TS + r];
+              restC[d * TS + r] = restC[d * TS + r] * (one - av[r]) + av[r] * cd;
             }
-            o_row[NGRAD + d] = gcol;
+            o_row[NGRAD + d] = row_sum<scalar_t>(gcol);
           }
         }
       }
