@@ -64,7 +64,7 @@ def browser_cpu_seconds() -> float:
 
 
 def train_rate(steps: int, threads: int, with_viewer: bool, out: Path, settle_s: float, window: str,
-               with_browser: bool = True, render_share: float | None = None) -> dict:
+               with_browser: bool = True, viewer_options: dict | None = None) -> dict:
     """Steps/s of one 3dgs run after the warm-up, with or without the viewer and a browser on it."""
     from metegs.data.config import DatasetConfig, SyntheticSceneConfig
     from metegs.registry import registry
@@ -82,8 +82,7 @@ def train_rate(steps: int, threads: int, with_viewer: bool, out: Path, settle_s:
     if with_viewer:
         from metegs.viewer import Viewer, ViewerConfig
 
-        shares = {} if render_share is None else {"render_share": render_share}
-        viewer = Viewer(trainer, ViewerConfig(port=0, **shares), live=True)
+        viewer = Viewer(trainer, ViewerConfig(port=0, **(viewer_options or {})), live=True)
         if with_browser:
             driver = browser(window)
             driver.get(viewer.url)
@@ -106,6 +105,19 @@ def train_rate(steps: int, threads: int, with_viewer: bool, out: Path, settle_s:
             "browser_cpu": browser_share, "browser": with_browser}
 
 
+def viewer_options(pairs: list[str]) -> dict:
+    """--viewer FIELD=VALUE pairs -> ViewerConfig keyword arguments (values parsed as YAML scalars)."""
+    import yaml
+
+    out = {}
+    for kv in pairs:
+        if "=" not in kv:
+            raise SystemExit(f"--viewer needs FIELD=VALUE, got {kv!r}")
+        key, value = kv.split("=", 1)
+        out[key] = yaml.safe_load(value)
+    return out
+
+
 def run_worker(mode: str, args: argparse.Namespace, out: Path) -> dict:
     """One training run of ``mode`` ("alone" or "viewer") in a fresh process; its record."""
     from metegs.cli.train import thread_env
@@ -117,7 +129,8 @@ def run_worker(mode: str, args: argparse.Namespace, out: Path) -> dict:
     cmd = [sys.executable, __file__, "--worker", mode, "--steps", str(args.steps), "--threads", str(args.threads),
            "--settle", str(args.settle), "--window", args.window, "--out", str(out)]
     cmd += ["--no-browser"] if args.no_browser else []
-    cmd += [] if args.render_share is None else ["--render-share", str(args.render_share)]
+    for kv in args.viewer:
+        cmd += ["--viewer", kv]
     done = subprocess.run(cmd, env=env, capture_output=True, text=True)
     if done.returncode != 0:
         raise RuntimeError(f"{mode} run failed:\n{done.stderr[-3000:]}")
@@ -134,8 +147,8 @@ def main() -> None:
     parser.add_argument("--settle", type=float, default=10.0, help="seconds for the page to start before training")
     parser.add_argument("--window", default="1280,800", help="browser window size WIDTH,HEIGHT (CSS pixels)")
     parser.add_argument("--no-browser", action="store_true", help="attach the viewer but open no browser on it")
-    parser.add_argument("--render-share", type=float, default=None,
-                        help="the viewer's render_share while training (default: ViewerConfig's)")
+    parser.add_argument("--viewer", action="append", default=[], metavar="FIELD=VALUE",
+                        help="a ViewerConfig field for the watched runs (repeatable), e.g. live_refresh_s=6")
     parser.add_argument("--env", action="append", default=[], metavar="KEY=VALUE",
                         help="environment variable for both modes' processes (repeatable), e.g. GOMP_SPINCOUNT=0")
     parser.add_argument("--json", type=Path, default=None, help="also write the records and the summary here")
@@ -144,7 +157,7 @@ def main() -> None:
     args = parser.parse_args()
     if args.worker is not None:  # one run, in this process: its record on the last stdout line
         rec = train_rate(args.steps, args.threads, args.worker == "viewer", args.out, args.settle, args.window,
-                         not args.no_browser, args.render_share)
+                         not args.no_browser, viewer_options(args.viewer))
         print(json.dumps(rec))
         return
     bad = [kv for kv in args.env if "=" not in kv]

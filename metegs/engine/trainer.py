@@ -146,7 +146,9 @@ class Trainer:
     def _initial_model(self) -> GaussianModel:
         mc = self.config.model
         points, colors = self.scene.points, self.scene.point_colors
-        if points is None or len(points) == 0 or mc.random_init:
+        self.random_init = points is None or len(points) == 0 or mc.random_init
+        """True when the Gaussians start from random points (no SfM points, or ``model.random_init``)."""
+        if self.random_init:
             train_cams = self.dataset.cameras[self.dataset.train_indices]
             points = random_points_in_view_overlap(train_cams, mc.init_random_points, seed=self.config.seed)
             colors = np.random.default_rng(self.config.seed).random((len(points), 3), dtype=np.float32)

@@ -1,6 +1,7 @@
 """The MeteGS dual-branch method end to end on a tiny degraded synthetic scene."""
 
 import json
+from dataclasses import replace
 
 import pytest
 import torch
@@ -132,6 +133,15 @@ def test_clear_weather_builds_no_weather_and_blind_mode_skips_the_clean_branch(t
     assert trainer.perceptual is None and not trainer.use_clean
     assert "off" in trainer.decisions["weather rain-streaks"] and "off" in trainer.decisions["weather fog-analytic"]
     trainer.train()
+
+
+def test_extra_points_compensate_sfm_points_only(tmp_path):
+    from_points = tiny_metegs(tmp_path / "a", max_steps=2).setup()
+    assert not from_points.random_init and from_points.extra_points is not None
+    assert from_points.decisions["extra points"].startswith("on")
+    at_random = tiny_metegs(tmp_path / "b", max_steps=2, model=replace(from_points.config.model, random_init=True)).setup()
+    assert at_random.random_init and at_random.extra_points is None
+    assert at_random.decisions["extra points"].startswith("off: the Gaussians started from random points")
 
 
 def test_eval_of_the_saved_run_reproduces_its_clean_view_metrics(trained):
