@@ -103,6 +103,14 @@ def load_extension():
     return EXTENSION.load()
 
 
+def set_kernel_threads(n: int) -> None:
+    """Threads of the ``cpu`` kernels called from this thread from now on (0: torch's intra-op count, the default).
+
+    With ``torch.set_num_threads(1)`` on the same thread this runs torch's own ops serially while the kernels
+    keep ``n`` threads on their pool (``csrc/pool.h``), which does not wait for a descheduled thread."""
+    load_extension().set_num_threads(int(n))
+
+
 def _build():
     from torch.utils import cpp_extension
 

@@ -72,8 +72,9 @@ class ViewerConfig:
     """Longest side of a full-resolution frame, px (the browser canvas, capped)."""
     preview_seconds: float = 0.08
     """Time budget of a frame while the camera moves (its resolution follows)."""
-    live_refresh_s: float = 3.0
-    """While training runs, a still view is re-rendered with the newest Gaussians this often."""
+    live_refresh_s: float = 6.0
+    """While training runs, a still view is re-rendered with the newest Gaussians this often (each frame sent costs
+    a browser without a GPU about a quarter of a second of drawing: docs/benchmark.md)."""
     same_frame_level: float = 0.5
     """A re-render of a still view that differs from the frame shown by less than this mean |difference| (8-bit
     levels) is not sent (every frame sent costs the browser a burst of WebGL redraws)."""
@@ -81,6 +82,10 @@ class ViewerConfig:
     """While training runs, the training panel (numbers and curves) is updated this often."""
     render_share: float = 0.15
     """While training runs, the viewer renders at most this fraction of the wall time (on one thread)."""
+    torch_threads_while_training: int = 1
+    """While training runs with the `cpu` backend, torch's own ops (losses, Adam, autograd) use this many threads and
+    the rasteriser's kernels keep the run's (their pool does not wait for a thread the browser holds up); 0: as
+    configured."""
     jpeg_quality: int = 90
     """JPEG quality of the frames sent to the browser."""
     thumbnail_px: int = 96
@@ -146,6 +151,9 @@ class Viewer:
         self.snapshot = Snapshot.of(trainer.model, trainer.step)
         self._snapshot_time = time.perf_counter()
         self._threads = torch.get_num_threads()
+        self._kernel_threads_set = False
+        if live:
+            self._share_cores_while_training()
         self._lock = threading.RLock()
         self._wake = threading.Event()
         self._stop = threading.Event()
@@ -566,8 +574,28 @@ class Viewer:
             self.step_btn.disabled = False
         self._wake.set()
 
+    def _share_cores_while_training(self) -> None:
+        """torch's ops on fewer threads, the cpu kernels on the run's (call on the training thread)."""
+        n = self.config.torch_threads_while_training
+        if n <= 0 or n >= self._threads or self.trainer.config.backend != "cpu":
+            return
+        from metegs.render.cpu_backend import set_kernel_threads
+
+        set_kernel_threads(self._threads)
+        torch.set_num_threads(n)
+        self._kernel_threads_set = True
+
+    def _restore_threads(self) -> None:
+        if self._kernel_threads_set:
+            from metegs.render.cpu_backend import set_kernel_threads
+
+            torch.set_num_threads(self._threads)
+            set_kernel_threads(0)
+            self._kernel_threads_set = False
+
     def training_finished(self) -> None:
-        """Training is over: take the final scene and stop throttling."""
+        """Training is over (call on the training thread): take the final scene, stop throttling, restore threads."""
+        self._restore_threads()
         if self.control is not None:
             self.control.finished()
         with self._lock:

@@ -358,3 +358,35 @@ def test_pool_gives_the_same_bits_on_any_thread_count_and_under_concurrent_calls
         assert all(torch.equal(a, b) for a, b in zip(runs[1], runs[threads])), threads
     assert all(torch.equal(a, b) for a, b in zip(runs[1], concurrent[0]))
     assert all(torch.equal(a, b) for a, b in zip(concurrent[1], concurrent[3]))
+
+
+def test_kernel_threads_can_differ_from_torchs_on_the_calling_thread():
+    """set_kernel_threads(n): the kernels called from this thread use n threads while torch's ops use its own
+    count (the live viewer runs torch's ops serially); 0 goes back to torch's count. Results stay bit-identical."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from metegs.render.cpu_backend import load_extension, set_kernel_threads
+
+    ext = load_extension()
+    g, cam = random_scene(2000, seed=5, sh_degree=1), camera(80, 64, f=60.0)
+    settings = RenderSettings(sh_degree=1)
+
+    def run():
+        out, grads, m2d = render_with_grads(CpuRasterizer(), g, cam, settings)
+        return [out.rgb, out.depth, m2d, *grads.values()]
+
+    previous = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        serial = run()
+        set_kernel_threads(3)
+        assert ext.get_num_threads() == 3 and torch.get_num_threads() == 1
+        with ThreadPoolExecutor(1) as other:  # the setting belongs to the thread that made it
+            assert other.submit(ext.get_num_threads).result() != 3
+        split = run()
+        set_kernel_threads(0)
+        assert ext.get_num_threads() == 1
+    finally:
+        set_kernel_threads(0)
+        torch.set_num_threads(previous)
+    assert all(torch.equal(a, b) for a, b in zip(serial, split))

@@ -11,6 +11,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import pytest
+import torch
 from filelock import FileLock
 
 STEPS = 40
@@ -66,14 +67,25 @@ def train_live(out: Path) -> dict:
         dataset=DatasetConfig(synthetic=SyntheticSceneConfig(width=64, height=48, num_views=8)),
     )
     trainer = config.setup()
+    threads_before = torch.get_num_threads()
     viewer = Viewer(trainer, ViewerConfig(port=0), live=True)
-    record: dict = {"run_dir": str(trainer.run_dir), "port": viewer.port}
+    record: dict = {"run_dir": str(trainer.run_dir), "port": viewer.port, "backend": trainer.config.backend,
+                    "threads_before": threads_before}
+
+    def threads_seen(tr, stats):  # on the training thread: torch's count and the cpu kernels'
+        if tr.step == 3 and tr.config.backend == "cpu":
+            from metegs.render.cpu_backend import load_extension
+
+            record["threads_during"] = [torch.get_num_threads(), load_extension().get_num_threads()]
+
+    trainer.step_hooks.append(threads_seen)
     helper = threading.Thread(target=_drive, args=(viewer.control, record), daemon=True)
     helper.start()
     try:
         trainer.train()  # in the main thread, as metegs-train does
         helper.join(timeout=60)
         viewer.training_finished()
+        record["threads_after"] = torch.get_num_threads()
         record["final_step"] = trainer.step
         record["panel"] = viewer.train_md.content
         record["history_len"] = len(viewer.control.history)

@@ -18,6 +18,13 @@ import pytest
 from metegs.gaussians.ply import load_ply
 
 
+def test_live_training_runs_torch_ops_serially_and_the_kernels_on_the_runs_threads(live_run):
+    r = live_run
+    assert r["threads_after"] == r["threads_before"]
+    if r["backend"] == "cpu" and r["threads_before"] > 1:
+        assert r["threads_during"] == [1, r["threads_before"]]
+
+
 def test_live_training_pauses_and_steps(live_run):
     r = live_run
     assert r["viewer_error"] is None

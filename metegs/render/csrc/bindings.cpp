@@ -14,4 +14,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         py::arg("ids"), py::arg("offsets"), py::arg("saved_T"), py::arg("saved_last"), py::arg("g_color"),
         py::arg("g_alpha"), py::arg("g_depth"), py::arg("tiles_x"), py::arg("tiles_y"), py::arg("width"),
         py::arg("height"), py::arg("rows") = py::none());
+  m.def("set_num_threads", [](int64_t n) { metegs::thread_override() = std::max<int64_t>(n, 0); },
+        "threads of the metegs kernels called from this thread (0: torch's intra-op count)", py::arg("n"));
+  m.def("get_num_threads", &metegs::num_threads, "threads of the metegs kernels called from this thread");
 }

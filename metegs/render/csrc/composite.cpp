@@ -149,11 +149,11 @@ inline void row_range(scalar_t my, double h, int64_t y0, int& r0, int& r1) {
   r1 = std::max(r0, static_cast<int>(std::min(std::max(hi, 0.0), double(TS))));
 }
 
-// Runs `worker` once per intra-op thread (at::get_num_threads()); workers pull tiles from a shared counter, and a
+// Runs `worker` once per kernel thread (metegs::num_threads(), pool.h); workers pull tiles from a shared counter, and a
 // worker that starts late finds none left (the caller may already have run its share, pool.h).
 template <typename F>
 void run_on_threads(F&& worker) {
-  const int64_t nt = std::max<int64_t>(1, at::get_num_threads());
+  const int64_t nt = metegs::num_threads();
   metegs::parallel_for(0, nt, 1, [&](int64_t begin, int64_t end) {
     for (int64_t i = begin; i < end; ++i) worker();
   });

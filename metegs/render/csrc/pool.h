@@ -33,6 +33,18 @@
 
 namespace metegs {
 
+// Threads of the metegs kernels called from this thread, when set (> 0) with set_num_threads; else torch's
+// intra-op count of this thread. Lets a thread run torch's own ops on fewer threads than the kernels.
+inline int64_t& thread_override() {
+  static thread_local int64_t n = 0;
+  return n;
+}
+
+inline int64_t num_threads() {
+  const int64_t n = thread_override();
+  return n > 0 ? n : std::max<int64_t>(1, at::get_num_threads());
+}
+
 class TilePool {
  public:
   using Body = std::function<void(int64_t, int64_t)>;
@@ -43,11 +55,11 @@ class TilePool {
   }
 
   // Calls body(b, e) over [begin, end) in chunks of at least `grain`, on this thread and up to
-  // at::get_num_threads() - 1 workers; returns when all chunks have run (rethrowing the first exception).
+  // num_threads() - 1 workers; returns when all chunks have run (rethrowing the first exception).
   void run(int64_t begin, int64_t end, int64_t grain, const Body& body) {
     const int64_t range = end - begin;
     if (range <= 0) return;
-    const int64_t threads = std::max<int64_t>(1, at::get_num_threads());
+    const int64_t threads = num_threads();
     const int64_t by_grain = (range + std::max<int64_t>(grain, 1) - 1) / std::max<int64_t>(grain, 1);
     const int64_t nchunks = std::min<int64_t>({by_grain, threads * 8, int64_t(1) << 30});
     if (threads == 1 || nchunks <= 1 || inside()) {
