@@ -109,21 +109,18 @@ def viewer_options(pairs: list[str]) -> dict:
     """--viewer FIELD=VALUE pairs -> ViewerConfig keyword arguments (values parsed as YAML scalars)."""
     import yaml
 
-    out = {}
-    for kv in pairs:
-        if "=" not in kv:
-            raise SystemExit(f"--viewer needs FIELD=VALUE, got {kv!r}")
-        key, value = kv.split("=", 1)
-        out[key] = yaml.safe_load(value)
-    return out
+    from metegs.meteo.readers import parse_options
+
+    return {key: yaml.safe_load(value) for key, value in parse_options(pairs, "--viewer").items()}
 
 
 def run_worker(mode: str, args: argparse.Namespace, out: Path) -> dict:
     """One training run of ``mode`` ("alone" or "viewer") in a fresh process; its record."""
     from metegs.cli.train import thread_env
+    from metegs.meteo.readers import parse_options
 
     env = dict(os.environ)
-    env.update(dict(kv.split("=", 1) for kv in args.env))
+    env.update(parse_options(args.env, "--env"))
     if mode == "viewer":
         env.update({k: v for k, v in thread_env(["--viewer"]).items() if k not in env})
     cmd = [sys.executable, __file__, "--worker", mode, "--steps", str(args.steps), "--threads", str(args.threads),
@@ -160,9 +157,14 @@ def main() -> None:
                          not args.no_browser, viewer_options(args.viewer))
         print(json.dumps(rec))
         return
-    bad = [kv for kv in args.env if "=" not in kv]
-    if bad:
-        parser.error(f"--env needs KEY=VALUE, got {bad[0]!r}")
+    from metegs.errors import ConfigError
+    from metegs.meteo.readers import parse_options
+
+    try:  # checked here, before any run starts
+        parse_options(args.env, "--env")
+        viewer_options(args.viewer)
+    except ConfigError as exc:
+        parser.error(str(exc))
     console = Console()
     records = []
     with tempfile.TemporaryDirectory() as tmp:

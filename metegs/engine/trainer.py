@@ -143,11 +143,15 @@ class Trainer:
         name = c.experiment_name or datetime.now().strftime("%Y-%m-%d_%H%M%S")
         return Path(c.output_dir) / scene_name / c.method / name
 
+    @property
+    def random_init(self) -> bool:
+        """True when the Gaussians start from random points (the scene has no SfM points, or ``model.random_init``)."""
+        points = self.scene.points
+        return points is None or len(points) == 0 or self.config.model.random_init
+
     def _initial_model(self) -> GaussianModel:
         mc = self.config.model
         points, colors = self.scene.points, self.scene.point_colors
-        self.random_init = points is None or len(points) == 0 or mc.random_init
-        """True when the Gaussians start from random points (no SfM points, or ``model.random_init``)."""
         if self.random_init:
             train_cams = self.dataset.cameras[self.dataset.train_indices]
             points = random_points_in_view_overlap(train_cams, mc.init_random_points, seed=self.config.seed)

@@ -38,16 +38,16 @@ def detect_reader(path: str | Path) -> str:
     )
 
 
-def parse_options(pairs: tuple[str, ...] | list[str]) -> dict[str, str]:
-    """Reader options given as ``KEY=VALUE`` strings (``--set``): ``("year=2024",)`` -> ``{"year": "2024"}``.
+def parse_options(pairs: tuple[str, ...] | list[str], flag: str = "--set") -> dict[str, str]:
+    """Options given as ``KEY=VALUE`` strings (reader options of ``--set``): ``("year=2024",)`` -> ``{"year": "2024"}``.
 
-    Values stay strings; each reader converts its own.
+    Values stay strings; each reader converts its own. ``flag`` names the option in the error.
     """
     out = {}
     for pair in pairs:
         key, sep, value = pair.partition("=")
         if not sep or not key.strip():
-            raise ConfigError(f"--set expects KEY=VALUE, got {pair!r}")
+            raise ConfigError(f"{flag} expects KEY=VALUE, got {pair!r}")
         out[key.strip()] = value.strip()
     return out
 
