@@ -32,6 +32,10 @@ class ModelConfig:
     """Number of random initial Gaussians when the scene has no points (placed where training views overlap)."""
     random_init: bool = False
     """Ignore the scene's points and start from random Gaussians."""
+    triangulate: bool = True
+    """When the scene has photo files and poses but no points (LLFF, nerfstudio, Blender), triangulate SfM
+    points from the training views with pycolmap (known poses; cached in the scene folder) instead of
+    starting from random Gaussians."""
 
 
 @dataclass

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import functools
 import json
 import random
 import time
@@ -143,19 +145,55 @@ class Trainer:
         name = c.experiment_name or datetime.now().strftime("%Y-%m-%d_%H%M%S")
         return Path(c.output_dir) / scene_name / c.method / name
 
+    @functools.cached_property
+    def initial_points(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """([P, 3] points, [P, 3] colours) the Gaussians start from: the scene's, else triangulated from the
+        training views' known poses (``model.triangulate``); None means random initialisation."""
+        mc = self.config.model
+        if mc.random_init:
+            return None
+        if self.scene.points is not None and len(self.scene.points) > 0:
+            return self.scene.points, self.scene.point_colors
+        if not mc.triangulate or self.scene.image_paths is None:
+            return None
+        from metegs.data.triangulate import CACHE_DIR, triangulate_known_poses
+
+        views = self.dataset.train_indices
+        source = self.scene.source
+        cache = None if source is None else (source if source.is_dir() else source.parent) / CACHE_DIR
+        status = (
+            self.console.status(f"triangulating points from {len(views)} training views (pycolmap)")
+            if self.console is not None
+            else contextlib.nullcontext()
+        )
+        try:
+            with status:
+                found = triangulate_known_poses(
+                    [self.scene.image_paths[i] for i in views], self.scene.cameras[views], cache
+                )
+        except (RuntimeError, ValueError, OSError) as exc:
+            self.decide("init", f"random Gaussians: triangulation failed ({exc})")
+            return None
+        self.decide(
+            "init",
+            f"{len(found.points)} points triangulated from {found.num_views} training views' known poses "
+            f"(mean reprojection error {found.reprojection_error_px:.2f} px; cache {found.cache})",
+        )
+        return found.points, found.colors
+
     @property
     def random_init(self) -> bool:
-        """True when the Gaussians start from random points (the scene has no SfM points, or ``model.random_init``)."""
-        points = self.scene.points
-        return points is None or len(points) == 0 or self.config.model.random_init
+        """True when the Gaussians start from random points (no scene or triangulated points, or ``model.random_init``)."""
+        return self.initial_points is None
 
     def _initial_model(self) -> GaussianModel:
         mc = self.config.model
-        points, colors = self.scene.points, self.scene.point_colors
         if self.random_init:
             train_cams = self.dataset.cameras[self.dataset.train_indices]
             points = random_points_in_view_overlap(train_cams, mc.init_random_points, seed=self.config.seed)
             colors = np.random.default_rng(self.config.seed).random((len(points), 3), dtype=np.float32)
+        else:
+            points, colors = self.initial_points
         return GaussianModel.from_points(
             points,
             colors,

@@ -6,10 +6,7 @@ matplotlib is not a dependency of metegs, OpenCV is, so the plot is drawn with `
 from __future__ import annotations
 
 import math
-import os
-import tempfile
 from datetime import datetime, timezone
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -31,21 +28,6 @@ _W, _H = 1200, 760
 _LEFT, _RIGHT = 90, 90
 _TOP1, _BOTTOM1 = 50, 420
 _TOP2, _BOTTOM2 = 470, 690
-
-
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write ``data`` through a temp file and a rename (never half a file)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.chmod(tmp, 0o644)  # mkstemp makes 0600 files; a plot is meant to be shared
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def _text(img: np.ndarray, s: str, x: int, y: int, scale: float = 0.45, color=(40, 40, 40), thickness: int = 1) -> None:

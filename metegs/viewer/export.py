@@ -14,6 +14,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from metegs.config import atomic_write_bytes
 from metegs.gaussians.ply import save_ply
 from metegs.viewer.render import Snapshot
 
@@ -25,7 +26,7 @@ def save_png(path: Path, image: np.ndarray) -> Path:
     ok, buf = cv2.imencode(".png", cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2BGR))
     if not ok:
         raise OSError(f"{path}: could not encode the PNG")
-    _atomic_write(path, buf.tobytes())
+    atomic_write_bytes(path, buf.tobytes())
     return path
 
 
@@ -109,18 +110,7 @@ def _write_gif(path: Path, frames: list[np.ndarray], fps: float) -> bool:
         import imageio.v3 as iio
 
         data = iio.imwrite("<bytes>", np.stack(frames), extension=".gif", duration=duration_ms, loop=0)
-        _atomic_write(path, data)
+        atomic_write_bytes(path, data)
         return True
     except Exception:  # imageio or its GIF plugin missing: the caller writes PNG frames
         return False
-
-
-def _atomic_write(path: Path, data: bytes) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise

@@ -1,0 +1,147 @@
+"""Points triangulated from known poses (pycolmap): on the surfaces of the synthetic scene, cached, and a
+trainer that uses them when a scene has photos and poses but no points."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+import metegs.data.triangulate as tri
+from metegs.data.config import DatasetConfig, SyntheticSceneConfig
+from metegs.data.images import save_image
+from metegs.data.parsers.base import parse_scene
+from metegs.data.triangulate import MIN_POINTS, triangulate_known_poses
+
+VIEWS = 12
+"""Consecutive views of the 48 on the synthetic orbit (7.5 degrees apart; SIFT does not match across 30)."""
+
+
+@pytest.fixture(scope="module")
+def photographed(tmp_path_factory):
+    """The synthetic scene at 320x240 with its first `VIEWS` renders written as PNG files (a scene that has photos)."""
+    config = SyntheticSceneConfig(width=320, height=240, num_views=48)
+    scene = parse_scene(None, None, DatasetConfig(synthetic=config, test_every=4))
+    folder = tmp_path_factory.mktemp("photos")
+    paths = []
+    for i, img in enumerate(scene.images[:VIEWS]):
+        paths.append(folder / f"view_{i:03d}.png")
+        save_image(paths[-1], img)
+    return scene, paths
+
+
+def relative_depth_error(scene, points: np.ndarray) -> np.ndarray:
+    """Per point, the smallest |z - exact depth| / exact depth over the views it projects into. -> [P]."""
+    best = np.full(len(points), np.inf)
+    for v in range(len(scene.cameras)):
+        cam = scene.cameras[v]
+        w2c = cam.world_to_cameras()[0].double().numpy()
+        p = points.astype(np.float64) @ w2c[:3, :3].T + w2c[:3, 3]
+        z = p[:, 2]
+        u = float(cam.fx[0]) * p[:, 0] / z + float(cam.cx[0])
+        r = float(cam.fy[0]) * p[:, 1] / z + float(cam.cy[0])
+        h, w = scene.depths[v].shape
+        inside = (z > 0) & (u >= 0) & (u < w) & (r >= 0) & (r < h)
+        gt = scene.depths[v][r[inside].astype(int), u[inside].astype(int)]
+        err = np.full(len(points), np.inf)
+        err[inside] = np.abs(z[inside] - gt) / gt
+        best = np.minimum(best, err)
+    return best
+
+
+def test_points_lie_on_the_scene_surfaces(photographed, tmp_path):
+    scene, paths = photographed
+    found = triangulate_known_poses(paths, scene.cameras[list(range(VIEWS))], tmp_path / "cache")
+    assert len(found.points) >= MIN_POINTS
+    assert found.num_views == VIEWS and found.reprojection_error_px < 1.5
+    err = relative_depth_error(scene, found.points)
+    assert np.median(err) < 0.01, np.median(err)
+    assert (err < 0.05).mean() > 0.9
+    assert found.colors.shape == found.points.shape and 0.0 <= found.colors.min() and found.colors.max() <= 1.0
+    assert found.colors.std() > 0.05
+
+
+def test_cache_is_reused_and_invalidated_by_a_changed_photo(photographed, tmp_path, monkeypatch):
+    scene, paths = photographed
+    cams = scene.cameras[list(range(VIEWS))]
+    first = triangulate_known_poses(paths, cams, tmp_path)
+    assert first.cache is not None and first.cache.is_file()
+
+    def must_not_run(*args, **kwargs):
+        raise AssertionError("triangulated again although the photos are unchanged")
+
+    monkeypatch.setattr(tri, "_triangulate", must_not_run)
+    again = triangulate_known_poses(paths, cams, tmp_path)
+    assert np.array_equal(again.points, first.points) and np.array_equal(again.colors, first.colors)
+    stat = paths[0].stat()
+    os.utime(paths[0], ns=(stat.st_atime_ns, stat.st_mtime_ns + 10**9))
+    with pytest.raises(AssertionError, match="triangulated again"):
+        triangulate_known_poses(paths, cams, tmp_path)
+
+
+def test_featureless_photos_are_a_clear_failure(photographed, tmp_path):
+    scene, _ = photographed
+    paths = []
+    for i in range(4):
+        paths.append(tmp_path / f"grey_{i}.png")
+        save_image(paths[-1], np.full((240, 320, 3), 0.5, dtype=np.float32))
+    with pytest.raises(RuntimeError, match="points could be triangulated"):
+        triangulate_known_poses(paths, scene.cameras[list(range(4))], None)
+
+
+def subset(scene, paths, source):
+    """The photographed views as a scene with photo files and poses but no points (like an LLFF capture)."""
+    views = list(range(len(paths)))
+    return replace(
+        scene,
+        cameras=scene.cameras[views],
+        names=scene.names[: len(views)],
+        images=None,
+        image_paths=paths,
+        depths=None,
+        clean_images=None,
+        points=None,
+        point_colors=None,
+        source=source,
+        train_indices=[v for v in views if v % 4],
+        test_indices=[v for v in views if v % 4 == 0],
+    )
+
+
+def test_trainer_starts_from_triangulated_points_when_the_scene_has_none(photographed, tmp_path, monkeypatch):
+    from metegs.engine.config import TrainConfig
+
+    scene, paths = photographed
+    posed_only = subset(scene, paths, source=tmp_path)
+    calls = []
+    points = np.random.default_rng(0).normal(size=(500, 3)).astype(np.float32)
+
+    def fake(image_paths, cameras, cache_dir, opts=None):
+        calls.append((len(image_paths), cache_dir))
+        return tri.TriangulatedPoints(points, np.full_like(points, 0.5), len(image_paths), 0.5, cache=None)
+
+    monkeypatch.setattr(tri, "triangulate_known_poses", fake)
+    config = TrainConfig(max_steps=1, progress=False, output_dir=tmp_path / "runs")
+    trainer = config.setup(scene=posed_only)
+    assert calls == [(len(trainer.dataset.train_indices), tmp_path / tri.CACHE_DIR)]
+    assert not trainer.random_init and len(trainer.model) == len(points)
+    assert "triangulated" in trainer.decisions["init"]
+
+    off = replace(config, model=replace(config.model, triangulate=False)).setup(scene=posed_only)
+    assert off.random_init and len(calls) == 1
+
+
+def test_trainer_falls_back_to_random_points_when_triangulation_fails(photographed, tmp_path, monkeypatch):
+    from metegs.engine.config import TrainConfig
+
+    scene, paths = photographed
+    posed_only = subset(scene, paths, source=None)
+
+    def failing(*args, **kwargs):
+        raise RuntimeError("only 3 points could be triangulated")
+
+    monkeypatch.setattr(tri, "triangulate_known_poses", failing)
+    trainer = TrainConfig(max_steps=1, progress=False, output_dir=tmp_path / "runs").setup(scene=posed_only)
+    assert trainer.random_init and "only 3 points" in trainer.decisions["init"]
