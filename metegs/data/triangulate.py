@@ -163,7 +163,7 @@ def triangulate_known_poses(
     pipeline of the module docstring and caches it there (``cache_dir`` None: no cache). Raises
     ``RuntimeError`` when fewer than `MIN_POINTS` points could be triangulated.
     """
-    opts = opts or SfmOptions(max_image_size=0, max_features=4096)
+    opts = opts or SfmOptions(max_features=4096)  # features at up to 1600 px, as metegs-process-images
     if len(image_paths) != len(cameras):
         raise ValueError(f"{len(image_paths)} photos but {len(cameras)} cameras")
     pycolmap = _pycolmap()
