@@ -264,13 +264,23 @@ def curve_series(results: dict, scene: str, condition: str) -> list[Series]:
     return series
 
 
+def _runs_wall(results: dict) -> str:
+    """', the runs took N s of wall time in all' (over every invocation that trained them), with what is unknown."""
+    total, unknown = results.get("runs_wall_seconds"), results.get("runs_wall_unknown") or 0
+    if not total:
+        return ""
+    known = f"; its runs took {total:.0f} s of wall time in all (over the invocations that trained them"
+    return known + (f"; {unknown} earlier runs not timed)" if unknown else ")")
+
+
 def markdown_report(results: dict, plots: dict[tuple[str, str], Path] | None = None) -> str:
     out = [f"# Benchmark `{results['suite']}`", ""]
     if results.get("description"):
         out += [results["description"], ""]
     host = results.get("host", {})
     out += [
-        f"{results['created']}; {results['total_seconds']:.0f} s in all; torch {host.get('torch')}, "
+        f"{results['created']}; {results['total_seconds']:.0f} s for this invocation{_runs_wall(results)}; "
+        f"torch {host.get('torch')}, "
         f"{host.get('threads')} threads, {host.get('cuda') or 'CPU'}. PSNR / SSIM / LPIPS on the clean held-out "
         "views; time = training seconds (+ restoration seconds for restored photos); render FPS of the final "
         "model over the test views. Best in **bold**, second <u>underlined</u>; *oracle* rows (clean photos) "

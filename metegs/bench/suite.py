@@ -226,7 +226,7 @@ class SuiteRunner:
 
                 trainer = load_run(run_dir, device=None)
                 fps, views = render_fps(trainer, self.suite.fps_repeats)
-                self._write_bench(bench_path, scene, method, condition, extra, fps, views, trainer.config)
+                self._write_bench(bench_path, scene, method, condition, extra, fps, views, trainer.config, t0)
                 status = "done"
             else:
                 resume = latest_checkpoint(run_dir)
@@ -238,7 +238,7 @@ class SuiteRunner:
                     trainer.record_eval(quick=True)  # the curve's first point: the initial model at 0 s
                 trainer.train()
                 fps, views = render_fps(trainer, self.suite.fps_repeats)
-                self._write_bench(bench_path, scene, method, condition, extra, fps, views, trainer.config)
+                self._write_bench(bench_path, scene, method, condition, extra, fps, views, trainer.config, t0)
                 status = "done"
         except MetegsError as exc:
             if self.fail_fast:
@@ -271,7 +271,7 @@ class SuiteRunner:
         (self.support if support else self.records).append(record)
         return record
 
-    def _write_bench(self, path, scene, method, condition, extra, fps, views, config) -> None:
+    def _write_bench(self, path, scene, method, condition, extra, fps, views, config, started: float) -> None:
         record = {
             "suite": self.suite.name,
             "scene": scene.name,
@@ -284,6 +284,7 @@ class SuiteRunner:
             "render_fps_repeats": self.suite.fps_repeats,
             "backend": getattr(config, "backend", None),
             "device": getattr(config, "device", None),
+            "wall_seconds": round(time.perf_counter() - started, 1),  # this invocation: setup, training, evaluation
             **extra,
         }
         atomic_write_text(path, json.dumps(record, indent=2, default=str))
@@ -309,6 +310,7 @@ class SuiteRunner:
             "preprocess_seconds": pre,
             "time_seconds": round(float(metrics.get("train_seconds") or 0.0) + pre, 3),
             "render_fps": bench.get("render_fps"),
+            "wall_seconds": bench.get("wall_seconds"),
             "restorer": bench.get("restorer"),
             "image_size": metrics.get("image_size"),
             "history": history,
@@ -512,6 +514,10 @@ class SuiteRunner:
             "description": self.suite.description,
             "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
             "total_seconds": round(seconds, 1),
+            "runs_wall_seconds": round(sum(r.get("wall_seconds") or 0.0 for r in self.records), 1),
+            "runs_wall_unknown": sum(
+                1 for r in self.records if r.get("status") in ("done", "cached") and r.get("wall_seconds") is None
+            ),
             "host": {
                 "python": platform.python_version(),
                 "torch": torch.__version__,

@@ -260,6 +260,10 @@ def test_a_tiny_suite_runs_resumes_and_reports(tmp_path):
     assert json.loads((out / "conditions.json").read_text())["conditions"]["rf"]["theta"]["files"]["rain_active"]
     assert (out / "results.md").is_file() and (out / "plots" / "files__rf.png").is_file()
     assert results["checks"] and results["total_seconds"] > 0
+    done = [r for r in results["runs"] if r["status"] == "done"]
+    assert all(r["wall_seconds"] > 0 for r in done) and results["runs_wall_unknown"] == 0
+    assert results["runs_wall_seconds"] == pytest.approx(sum(r["wall_seconds"] for r in done), abs=0.1)
+    assert f"its runs took {results['runs_wall_seconds']:.0f} s" in (out / "results.md").read_text()
 
     # resumable: finished runs are reused; a run cut short resumes from its checkpoint
     stamp = (out / "synthetic" / "rf" / "3dgs" / "metrics.json").stat().st_mtime_ns
@@ -275,6 +279,9 @@ def test_a_tiny_suite_runs_resumes_and_reports(tmp_path):
     resumed = by2[("files", "rf", "3dgs")]
     assert resumed["status"] == "done" and resumed["history"][-1]["step"] == 6
     assert by2[("files", "rf", "3dgs")]["psnr"] is not None
+    # reused runs keep the wall time of the invocation that trained them
+    assert by2[("synthetic", "rf", "3dgs")]["wall_seconds"] == by[("synthetic", "rf", "3dgs")]["wall_seconds"]
+    assert again["runs_wall_seconds"] > again["total_seconds"] * 0.5
 
     # a changed suite does not silently pass old runs off as new ones
     suite.train["max_steps"] = 7
