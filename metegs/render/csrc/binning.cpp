@@ -40,15 +40,35 @@ inline Rect tile_rect(const T* m, const T* e, int64_t tiles_x, int64_t tiles_y) 
   return r;
 }
 
+// One Gaussian's footprint as the tile test needs it: its conic (a, b, c) with the reciprocals of a and c
+// (the test runs for every candidate tile; divisions there cost more than the rest of it), its mean and
+// the bound 2 ln(255 o) on the quadratic form.
+struct Footprint {
+  double a, b, c, inv_a, inv_c, mx, my, thresh;
+  bool definite;  // a > 0, c > 0 and ac - b^2 > 0; else every candidate tile is kept (no culling)
+};
+
+template <typename T>
+inline Footprint footprint(const T* m, const T* conic, double thresh) {
+  Footprint f;
+  f.a = conic[0], f.b = conic[1], f.c = conic[2];
+  f.definite = f.a > 0 && f.c > 0 && f.a * f.c - f.b * f.b > 0;
+  f.inv_a = f.definite ? 1.0 / f.a : 0.0;
+  f.inv_c = f.definite ? 1.0 / f.c : 0.0;
+  f.mx = m[0], f.my = m[1];
+  f.thresh = thresh;
+  return f;
+}
+
 // Minimum of q(dx, dy) = a dx^2 + 2 b dx dy + c dy^2 (positive definite) over [X0, X1] x [Y0, Y1],
 // and |a| dx^2 + 2 |b dx dy| + |c| dy^2 at the minimiser (the size of the rounding error there).
-inline void quad_min(double a, double b, double c, double X0, double X1, double Y0, double Y1, double& qmin,
-                     double& qabs) {
+inline void quad_min(const Footprint& f, double X0, double X1, double Y0, double Y1, double& qmin, double& qabs) {
   if (X0 <= 0 && 0 <= X1 && Y0 <= 0 && 0 <= Y1) {
     qmin = 0;
     qabs = 0;
     return;
   }
+  const double a = f.a, b = f.b, c = f.c;
   qmin = std::numeric_limits<double>::infinity();
   qabs = 0;
   auto consider = [&](double x, double y) {
@@ -58,20 +78,17 @@ inline void quad_min(double a, double b, double c, double X0, double X1, double 
       qabs = std::abs(a) * x * x + 2 * std::abs(b * x * y) + std::abs(c) * y * y;
     }
   };
-  for (double X : {X0, X1}) consider(X, std::clamp(-b * X / c, Y0, Y1));
-  for (double Y : {Y0, Y1}) consider(std::clamp(-b * Y / a, X0, X1), Y);
+  for (double X : {X0, X1}) consider(X, std::clamp(-b * X * f.inv_c, Y0, Y1));
+  for (double Y : {Y0, Y1}) consider(std::clamp(-b * Y * f.inv_a, X0, X1), Y);
 }
 
-template <typename T>
-inline bool tile_reached(const T* m, const T* conic, double thresh, int64_t tx, int64_t ty, int64_t W, int64_t H) {
-  const double a = conic[0], b = conic[1], c = conic[2];
-  if (!(a > 0 && c > 0 && a * c - b * b > 0)) return true;  // not positive definite: keep (no culling)
-  const double mx = m[0], my = m[1];
-  const double X0 = double(tx * TILE) + 0.5 - mx, X1 = double(std::min((tx + 1) * TILE, W) - 1) + 0.5 - mx;
-  const double Y0 = double(ty * TILE) + 0.5 - my, Y1 = double(std::min((ty + 1) * TILE, H) - 1) + 0.5 - my;
+inline bool tile_reached(const Footprint& f, int64_t tx, int64_t ty, int64_t W, int64_t H) {
+  if (!f.definite) return true;
+  const double X0 = double(tx * TILE) + 0.5 - f.mx, X1 = double(std::min((tx + 1) * TILE, W) - 1) + 0.5 - f.mx;
+  const double Y0 = double(ty * TILE) + 0.5 - f.my, Y1 = double(std::min((ty + 1) * TILE, H) - 1) + 0.5 - f.my;
   double qmin, qabs;
-  quad_min(a, b, c, X0, X1, Y0, Y1, qmin, qabs);
-  return qmin <= thresh + 1e-4 * (1.0 + thresh + qabs);
+  quad_min(f, X0, X1, Y0, Y1, qmin, qabs);
+  return qmin <= f.thresh + 1e-4 * (1.0 + f.thresh + qabs);
 }
 
 // Order-preserving unsigned image of a float / double (negative values flipped): a < b iff key(a) < key(b)
@@ -139,21 +156,43 @@ std::vector<at::Tensor> bin_tiles(at::Tensor means2d, at::Tensor conics, at::Ten
     using T = scalar_t;
     const T *mp = means2d.data_ptr<T>(), *cp = conics.data_ptr<T>(), *op = opacities.data_ptr<T>();
     const T* ep = extents.data_ptr<T>();
+    // The tiles of Gaussian g that pass the test, in row-major order. The first pass (counting) also
+    // remembers them as a bit mask over the candidate rectangle when it has at most 64 tiles (almost every
+    // Gaussian), so that the second pass (writing the lists) repeats the test only for the few large ones.
     auto for_each_tile = [&](int64_t g, auto&& fn) {
       const T* e = ep + 2 * g;
       if (!(e[0] > 0 && e[1] > 0)) return;
       const Rect r = tile_rect(mp + 2 * g, e, tiles_x, tiles_y);
-      const double thresh = cull ? alpha_threshold(op[g]) : 0.0;
+      if (!cull) {
+        for (int64_t ty = r.y0; ty < r.y1; ++ty)
+          for (int64_t tx = r.x0; tx < r.x1; ++tx) fn(ty * tiles_x + tx);
+        return;
+      }
+      const Footprint f = footprint(mp + 2 * g, cp + 3 * g, alpha_threshold(op[g]));
       for (int64_t ty = r.y0; ty < r.y1; ++ty)
         for (int64_t tx = r.x0; tx < r.x1; ++tx)
-          if (!cull || tile_reached(mp + 2 * g, cp + 3 * g, thresh, tx, ty, width, height))
-            fn(ty * tiles_x + tx);
+          if (tile_reached(f, tx, ty, width, height)) fn(ty * tiles_x + tx);
     };
+    std::vector<uint64_t> mask(N, 0);
+    constexpr uint64_t NO_MASK = ~uint64_t(0);  // more than 64 candidate tiles (or none): test again
     metegs::parallel_for(0, N, 256, [&](int64_t begin, int64_t end) {
       for (int64_t g = begin; g < end; ++g) {
         rowp[g] = row_half_height(cp[3 * g], cp[3 * g + 1], cp[3 * g + 2], op[g]);
+        const T* e = ep + 2 * g;
+        const Rect r = (e[0] > 0 && e[1] > 0) ? tile_rect(mp + 2 * g, e, tiles_x, tiles_y) : Rect{0, 0, 0, 0};
+        const int64_t w = r.x1 - r.x0, area = w * (r.y1 - r.y0);
         int64_t n = 0;
-        for_each_tile(g, [&](int64_t) { ++n; });
+        if (area > 0 && area <= 64) {
+          uint64_t bits = 0;
+          for_each_tile(g, [&](int64_t t) {
+            bits |= uint64_t(1) << ((t / tiles_x - r.y0) * w + (t % tiles_x - r.x0));
+            ++n;
+          });
+          mask[g] = bits;
+        } else {
+          for_each_tile(g, [&](int64_t) { ++n; });
+          mask[g] = NO_MASK;
+        }
         count[g] = n;
       }
     });
@@ -171,8 +210,18 @@ std::vector<at::Tensor> bin_tiles(at::Tensor means2d, at::Tensor conics, at::Ten
     std::vector<int32_t> tiles_of(M);
     metegs::parallel_for(0, NB, 256, [&](int64_t begin, int64_t end) {
       for (int64_t i = begin; i < end; ++i) {
+        const int64_t g = ord[i];
         int64_t k = start[i];
-        for_each_tile(ord[i], [&](int64_t t) { tiles_of[k++] = static_cast<int32_t>(t); });
+        if (mask[g] == NO_MASK) {
+          for_each_tile(g, [&](int64_t t) { tiles_of[k++] = static_cast<int32_t>(t); });
+          continue;
+        }
+        const Rect r = tile_rect(mp + 2 * g, ep + 2 * g, tiles_x, tiles_y);
+        const int64_t w = r.x1 - r.x0;
+        for (uint64_t bits = mask[g]; bits; bits &= bits - 1) {
+          const int64_t j = __builtin_ctzll(bits);
+          tiles_of[k++] = static_cast<int32_t>((r.y0 + j / w) * tiles_x + r.x0 + j % w);
+        }
       }
     });
     int64_t* off = offsets.data_ptr<int64_t>();
