@@ -332,10 +332,11 @@ std::vector<at::Tensor> project_backward(at::Tensor means, at::Tensor quats, at:
   TORCH_CHECK(g_means2d.numel() == 2 * N && g_conics.numel() == 3 * N && g_depths.numel() == N &&
                   g_colors.numel() == 3 * N,
               "bad gradient shapes for the projection backward");
-  auto gm = at::zeros({N, 3}, means.options());
-  auto gq = at::zeros({N, 4}, means.options());
-  auto gs = at::zeros({N, 3}, means.options());
-  auto gsh = at::zeros({N, KS, 3}, means.options());
+  // every element is written below (zeros for culled Gaussians and for SH bands above sh_degree): no fill
+  auto gm = at::empty({N, 3}, means.options());
+  auto gq = at::empty({N, 4}, means.options());
+  auto gs = at::empty({N, 3}, means.options());
+  auto gsh = at::empty({N, KS, 3}, means.options());
   AT_DISPATCH_FLOATING_TYPES(dt, "metegs_project_backward", [&] {
     using T = scalar_t;
     const auto cam = make_camera<T>(viewmat, K, campos, width, height, near_plane, far_plane, eps2d);
@@ -366,6 +367,7 @@ std::vector<at::Tensor> project_backward(at::Tensor means, at::Tensor quats, at:
         T* osh = ogsh + g * KS * 3;
         for (int k = 0; k < nb; ++k)
           for (int ch = 0; ch < 3; ++ch) osh[3 * k + ch] = basis[k] * gc[ch];
+        std::fill(osh + 3 * nb, osh + 3 * KS, T(0));
         T gmean[3] = {0, 0, 0};
         if (any && deg > 0) {
           sh_basis_grad(deg, d[0], d[1], d[2], bgrad);
@@ -464,6 +466,9 @@ std::vector<at::Tensor> project_backward(at::Tensor means, at::Tensor quats, at:
             gp[1] += gty;
           gp[2] += gtz;
           for (int j = 0; j < 3; ++j) gmean[j] += cam.R[j] * gp[0] + cam.R[3 + j] * gp[1] + cam.R[6 + j] * gp[2];
+        } else {
+          std::fill(ogq + 4 * g, ogq + 4 * g + 4, T(0));
+          std::fill(ogs + 3 * g, ogs + 3 * g + 3, T(0));
         }
         for (int j = 0; j < 3; ++j) ogm[3 * g + j] = gmean[j];
       }
