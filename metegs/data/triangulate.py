@@ -4,7 +4,8 @@ point triangulator on the known poses, cached next to the photos.
 3DGS starts far better from an SfM cloud than from random points: on the Ethiopian head LLFF capture (poses
 only) random initialisation trains slower and varies more between runs. The pipeline is the standard
 "triangulate with known poses" one: SIFT features of the training views, exhaustive matching with
-geometric verification (the `metegs-process-images` stages of `metegs.data.sfm`), then
+geometric verification (sequential matching beyond 200 views; the `metegs-process-images` stages of
+`metegs.data.sfm`), then
 ``pycolmap.triangulate_points`` with the cameras held fixed. Test views are never used. The points are
 cached in ``<scene>/.metegs_points/points-<key>.npz``; the key covers the photos (path, size, mtime),
 the cameras and the pycolmap version, so a changed photo or pose triangulates again.
@@ -114,7 +115,7 @@ def _triangulate(image_paths: list[Path], cameras: Cameras, opts: SfmOptions) ->
         and (cameras.width == cameras.width[0]).all()
         and (cameras.height == cameras.height[0]).all()
     )
-    opts = SfmOptions(**{**opts.__dict__, "camera_model": "PINHOLE", "single_camera": shared, "matcher": "exhaustive"})
+    opts = SfmOptions(**{**opts.__dict__, "camera_model": "PINHOLE", "single_camera": shared})
     with tempfile.TemporaryDirectory(prefix="metegs-triangulate-") as tmp:
         images = Path(tmp) / "images"
         images.mkdir()
