@@ -19,7 +19,7 @@ import os
 import shutil
 import tempfile
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -115,7 +115,7 @@ def _triangulate(image_paths: list[Path], cameras: Cameras, opts: SfmOptions) ->
         and (cameras.width == cameras.width[0]).all()
         and (cameras.height == cameras.height[0]).all()
     )
-    opts = SfmOptions(**{**opts.__dict__, "camera_model": "PINHOLE", "single_camera": shared})
+    opts = replace(opts, camera_model="PINHOLE", single_camera=shared)
     with tempfile.TemporaryDirectory(prefix="metegs-triangulate-") as tmp:
         images = Path(tmp) / "images"
         images.mkdir()

@@ -156,43 +156,49 @@ std::vector<at::Tensor> bin_tiles(at::Tensor means2d, at::Tensor conics, at::Ten
     using T = scalar_t;
     const T *mp = means2d.data_ptr<T>(), *cp = conics.data_ptr<T>(), *op = opacities.data_ptr<T>();
     const T* ep = extents.data_ptr<T>();
-    // The tiles of Gaussian g that pass the test, in row-major order. The first pass (counting) also
-    // remembers them as a bit mask over the candidate rectangle when it has at most 64 tiles (almost every
-    // Gaussian), so that the second pass (writing the lists) repeats the test only for the few large ones.
-    auto for_each_tile = [&](int64_t g, auto&& fn) {
+    // Candidate tiles of Gaussian g: its extents' box (empty when the Gaussian is culled).
+    auto candidates = [&](int64_t g) {
       const T* e = ep + 2 * g;
-      if (!(e[0] > 0 && e[1] > 0)) return;
-      const Rect r = tile_rect(mp + 2 * g, e, tiles_x, tiles_y);
+      return (e[0] > 0 && e[1] > 0) ? tile_rect(mp + 2 * g, e, tiles_x, tiles_y) : Rect{0, 0, 0, 0};
+    };
+    // fn(j) for each candidate tile of g that passes the test, j = its row-major index in the rectangle r.
+    auto for_each_tile = [&](int64_t g, const Rect& r, auto&& fn) {
+      const int64_t w = r.x1 - r.x0;
       if (!cull) {
-        for (int64_t ty = r.y0; ty < r.y1; ++ty)
-          for (int64_t tx = r.x0; tx < r.x1; ++tx) fn(ty * tiles_x + tx);
+        for (int64_t j = 0; j < w * (r.y1 - r.y0); ++j) fn(j);
         return;
       }
       const Footprint f = footprint(mp + 2 * g, cp + 3 * g, alpha_threshold(op[g]));
       for (int64_t ty = r.y0; ty < r.y1; ++ty)
         for (int64_t tx = r.x0; tx < r.x1; ++tx)
-          if (tile_reached(f, tx, ty, width, height)) fn(ty * tiles_x + tx);
+          if (tile_reached(f, tx, ty, width, height)) fn((ty - r.y0) * w + tx - r.x0);
     };
+    auto tile_of = [&](const Rect& r, int64_t j) {
+      const int64_t w = r.x1 - r.x0;
+      return static_cast<int32_t>((r.y0 + j / w) * tiles_x + r.x0 + j % w);
+    };
+    // The first pass (counting) also remembers the kept tiles as a bit mask over the rectangle when it has at
+    // most 64 tiles (almost every Gaussian), so that the second pass (writing the lists) repeats the test only
+    // for the few large ones (and for a 64-tile rectangle with every tile kept, whose mask reads as NO_MASK).
     std::vector<uint64_t> mask(N, 0);
-    constexpr uint64_t NO_MASK = ~uint64_t(0);  // more than 64 candidate tiles (or none): test again
+    constexpr uint64_t NO_MASK = ~uint64_t(0);
     metegs::parallel_for(0, N, 256, [&](int64_t begin, int64_t end) {
       for (int64_t g = begin; g < end; ++g) {
         rowp[g] = row_half_height(cp[3 * g], cp[3 * g + 1], cp[3 * g + 2], op[g]);
-        const T* e = ep + 2 * g;
-        const Rect r = (e[0] > 0 && e[1] > 0) ? tile_rect(mp + 2 * g, e, tiles_x, tiles_y) : Rect{0, 0, 0, 0};
-        const int64_t w = r.x1 - r.x0, area = w * (r.y1 - r.y0);
+        const Rect r = candidates(g);
+        const int64_t area = (r.x1 - r.x0) * (r.y1 - r.y0);
         int64_t n = 0;
-        if (area > 0 && area <= 64) {
-          uint64_t bits = 0;
-          for_each_tile(g, [&](int64_t t) {
-            bits |= uint64_t(1) << ((t / tiles_x - r.y0) * w + (t % tiles_x - r.x0));
+        uint64_t bits = 0;
+        if (area <= 64) {
+          for_each_tile(g, r, [&](int64_t j) {
+            bits |= uint64_t(1) << j;
             ++n;
           });
-          mask[g] = bits;
         } else {
-          for_each_tile(g, [&](int64_t) { ++n; });
-          mask[g] = NO_MASK;
+          for_each_tile(g, r, [&](int64_t) { ++n; });
+          bits = NO_MASK;
         }
+        mask[g] = bits;
         count[g] = n;
       }
     });
@@ -211,17 +217,12 @@ std::vector<at::Tensor> bin_tiles(at::Tensor means2d, at::Tensor conics, at::Ten
     metegs::parallel_for(0, NB, 256, [&](int64_t begin, int64_t end) {
       for (int64_t i = begin; i < end; ++i) {
         const int64_t g = ord[i];
+        const Rect r = candidates(g);
         int64_t k = start[i];
-        if (mask[g] == NO_MASK) {
-          for_each_tile(g, [&](int64_t t) { tiles_of[k++] = static_cast<int32_t>(t); });
-          continue;
-        }
-        const Rect r = tile_rect(mp + 2 * g, ep + 2 * g, tiles_x, tiles_y);
-        const int64_t w = r.x1 - r.x0;
-        for (uint64_t bits = mask[g]; bits; bits &= bits - 1) {
-          const int64_t j = __builtin_ctzll(bits);
-          tiles_of[k++] = static_cast<int32_t>((r.y0 + j / w) * tiles_x + r.x0 + j % w);
-        }
+        if (mask[g] == NO_MASK)
+          for_each_tile(g, r, [&](int64_t j) { tiles_of[k++] = tile_of(r, j); });
+        else
+          for (uint64_t bits = mask[g]; bits; bits &= bits - 1) tiles_of[k++] = tile_of(r, __builtin_ctzll(bits));
       }
     });
     int64_t* off = offsets.data_ptr<int64_t>();
