@@ -81,6 +81,25 @@ def test_cache_is_reused_and_invalidated_by_a_changed_photo(photographed, tmp_pa
         triangulate_known_poses(paths, cams, tmp_path)
 
 
+def test_an_unreadable_cache_is_named_in_a_warning_and_rewritten(photographed, tmp_path, monkeypatch):
+    scene, paths = photographed
+    cams = scene.cameras[list(range(VIEWS))]
+    points = np.random.default_rng(1).normal(size=(MIN_POINTS, 3)).astype(np.float32)
+    calls = []
+
+    def fake(image_paths, cameras, opts):
+        calls.append(len(image_paths))
+        return tri.TriangulatedPoints(points, np.full_like(points, 0.5), len(image_paths), 0.5)
+
+    monkeypatch.setattr(tri, "_triangulate", fake)
+    first = triangulate_known_poses(paths, cams, tmp_path)
+    first.cache.write_bytes(b"not an npz file")
+    with pytest.warns(UserWarning, match="unreadable cached triangulation"):
+        again = triangulate_known_poses(paths, cams, tmp_path)
+    assert calls == [VIEWS, VIEWS] and np.array_equal(again.points, points)
+    assert np.array_equal(triangulate_known_poses(paths, cams, tmp_path).points, points) and len(calls) == 2
+
+
 def test_featureless_photos_are_a_clear_failure(photographed, tmp_path):
     scene, _ = photographed
     paths = []
