@@ -235,7 +235,9 @@ class ExtraPointCompensation:
             opt.state.clear()
 
     def state_dict(self) -> dict:
-        return {"done": self.done}
+        return {"done": self.done, "volume": self.volume}
 
     def load_state_dict(self, d: dict) -> None:
+        """A resumed run's compensator: the volume of the run's initial points, not of the checkpoint's."""
         self.done = bool(d.get("done", False))
+        self.volume = float(d.get("volume", self.volume))

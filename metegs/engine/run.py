@@ -32,11 +32,11 @@ def load_run(run_dir: Path, checkpoint: Path | None = None, ply: Path | None = N
 
     run_dir = Path(run_dir)
     config = load_run_config(run_dir)
-    config = replace(config, load_checkpoint=None, progress=False, device=device or config.device)
-    trainer = config.setup(run_dir=run_dir)
+    # the Gaussians go to the Trainer itself, which then skips building (maybe triangulating) the initial ones
+    source = None if ply is not None else checkpoint or run_dir / "checkpoints"
+    config = replace(config, load_checkpoint=source, progress=False, device=device or config.device)
     if ply is not None:
-        trainer.model = load_ply(ply).to(trainer.device)
-    else:
-        trainer.load(checkpoint or run_dir / "checkpoints")
-        trainer.model.active_sh_degree = trainer.model.max_sh_degree
+        return config.setup(run_dir=run_dir, model=load_ply(ply))
+    trainer = config.setup(run_dir=run_dir)
+    trainer.model.active_sh_degree = trainer.model.max_sh_degree
     return trainer

@@ -50,7 +50,17 @@ def seed_everything(seed: int) -> None:
 class Trainer:
     """Plain 3DGS training of scene Gaussians on the training views."""
 
-    def __init__(self, config: TrainConfig, run_dir: Path | None = None, console=None, scene: SceneData | None = None):
+    def __init__(
+        self,
+        config: TrainConfig,
+        run_dir: Path | None = None,
+        console=None,
+        scene: SceneData | None = None,
+        model: GaussianModel | None = None,
+    ):
+        """``model``: Gaussians that replace the configured initialisation (a PLY reopened for viewing or
+        evaluation). With ``config.load_checkpoint`` the checkpoint's Gaussians do, and neither case builds the
+        initial model (triangulating a scene without points takes about half a minute when its cache is gone)."""
         self._created = time.perf_counter()
         self.device = resolve_device(config.device)
         backend = resolve_backend(config.backend, self.device)
@@ -71,7 +81,18 @@ class Trainer:
             raise ConfigError("the scene has no training views")
         self.rasterizer = make_rasterizer(backend, self.device)
         self.extent = scene_extent(self.dataset.cameras[self.dataset.train_indices])
-        self.model = self._initial_model()
+        self._random_init: bool | None = None
+        ckpt = None if config.load_checkpoint is None else load_checkpoint(config.load_checkpoint, self.device)
+        if ckpt is not None:
+            self.model = GaussianModel.from_state(ckpt["params"], ckpt["sh_degree"]).to(self.device)
+            if "random_init" in ckpt:  # older checkpoints: found again from the scene (cached triangulation)
+                self._random_init = bool(ckpt["random_init"])
+        elif model is not None:
+            self.model = model.to(self.device)
+            self._random_init = False
+            self.decide("init", "Gaussians given (not initialised by this run)")
+        else:
+            self.model = self._initial_model()
         self.optimizers = make_optimizers(self.model.params, config.optim, self.extent)
         self.densifier = config.densify.setup(
             max_steps=config.max_steps, extent=self.extent, num_train_views=len(self.dataset.train_indices)
@@ -84,8 +105,8 @@ class Trainer:
         """Called as ``hook(trainer, stats)`` after every training step (the live viewer; a hook may block to pause)."""
         self.run_dir = Path(run_dir) if run_dir is not None else self._default_run_dir()
         self.setup_method()
-        if config.load_checkpoint is not None:
-            self.load(config.load_checkpoint)
+        if ckpt is not None:
+            self._restore(ckpt)
 
     # --- setup -------------------------------------------------------------------------------------
     def decide(self, key: str, text: str) -> None:
@@ -183,8 +204,11 @@ class Trainer:
 
     @property
     def random_init(self) -> bool:
-        """True when the Gaussians start from random points (no scene or triangulated points, or ``model.random_init``)."""
-        return self.initial_points is None
+        """True when the Gaussians start from random points (no scene or triangulated points, or ``model.random_init``);
+        a resumed run keeps what its checkpoint says."""
+        if self._random_init is None:
+            self._random_init = self.initial_points is None
+        return self._random_init
 
     def _initial_model(self) -> GaussianModel:
         mc = self.config.model
@@ -406,6 +430,7 @@ class Trainer:
             "densifier": self.densifier.state_dict(),
             "history": self.history,
             "train_seconds": self.train_seconds,
+            "random_init": self.random_init,
             "metegs_version": __version__,
             **self.extra_state(),
         }
@@ -413,7 +438,10 @@ class Trainer:
 
     def load(self, path: Path) -> None:
         """Resume from a checkpoint: parameters (any count), optimiser moments, statistics, step."""
-        ckpt = load_checkpoint(path, self.device)
+        self._restore(load_checkpoint(path, self.device))
+
+    def _restore(self, ckpt: dict) -> None:
+        """Take the state of a loaded checkpoint (see `load`)."""
         self.model = GaussianModel.from_state(ckpt["params"], ckpt["sh_degree"]).to(self.device)
         self.optimizers = make_optimizers(self.model.params, self.config.optim, self.extent)
         for k, o in self.optimizers.items():

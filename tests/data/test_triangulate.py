@@ -8,6 +8,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+import torch
 
 import metegs.data.triangulate as tri
 from metegs.data.config import DatasetConfig, SyntheticSceneConfig
@@ -164,3 +165,35 @@ def test_trainer_falls_back_to_random_points_when_triangulation_fails(photograph
     monkeypatch.setattr(tri, "triangulate_known_poses", failing)
     trainer = TrainConfig(max_steps=1, progress=False, output_dir=tmp_path / "runs").setup(scene=posed_only)
     assert trainer.random_init and "only 3 points" in trainer.decisions["init"]
+
+
+def test_resuming_or_reopening_a_run_does_not_triangulate_again(photographed, tmp_path, monkeypatch):
+    from metegs.engine.config import TrainConfig
+    from metegs.gaussians.ply import load_ply, save_ply
+
+    scene, paths = photographed
+    posed_only = subset(scene, paths, source=tmp_path)
+    calls = []
+    points = np.random.default_rng(1).normal(size=(300, 3)).astype(np.float32)
+
+    def fake(image_paths, cameras, cache_dir, opts=None):
+        calls.append(len(image_paths))
+        return tri.TriangulatedPoints(points, np.full_like(points, 0.5), len(image_paths), 0.5, cache=None)
+
+    monkeypatch.setattr(tri, "triangulate_known_poses", fake)
+    config = TrainConfig(max_steps=2, progress=False, output_dir=tmp_path / "runs")
+    trainer = config.setup(scene=posed_only)
+    trainer.train_step(trainer.dataset.train_indices[0])
+    trainer.step = 1
+    ckpt = trainer.save()
+    assert calls == [len(trainer.dataset.train_indices)]
+
+    resumed = replace(config, load_checkpoint=ckpt).setup(scene=posed_only)
+    assert len(calls) == 1, "a resumed run rebuilt (triangulated) the initial Gaussians it then replaced"
+    assert resumed.step == 1 and not resumed.random_init and len(calls) == 1
+    for name, value in trainer.model.params.items():
+        assert torch.equal(resumed.model.params[name], value), name
+
+    save_ply(trainer.model, tmp_path / "scene.ply")
+    reopened = config.setup(scene=posed_only, model=load_ply(tmp_path / "scene.ply"))
+    assert len(calls) == 1 and len(reopened.model) == len(trainer.model)

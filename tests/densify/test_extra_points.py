@@ -168,9 +168,12 @@ def test_runs_once_at_its_step_and_remembers_it():
     report = epc.step(model, opts, 100)
     assert report["extra_points"] == len(model) - 40 > 0
     assert epc.step(model, opts, 101) == {}
-    assert epc.state_dict() == {"done": True}
-    again = cfg.setup(max_steps=400, extent=1.0, initial_points=model.means.detach())
+    assert epc.state_dict() == {"done": True, "volume": epc.volume}
+    # a resumed run builds its compensator from the checkpoint's Gaussians; the state restores the initial volume
+    again = cfg.setup(max_steps=400, extent=1.0, initial_points=model.means.detach()[:5])
+    assert again.volume != epc.volume
     again.load_state_dict(epc.state_dict())
+    assert again.volume == epc.volume
     n = len(model)
     assert again.step(model, opts, 100) == {} and len(model) == n
 
