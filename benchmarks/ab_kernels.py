@@ -87,6 +87,7 @@ def main() -> None:
     parser.add_argument("--build-dir", type=Path, default=Path("/tmp/metegs-ab-kernels"), help="where A is built")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
+    torch.set_flush_denormal(True)  # as training runs (Trainer)
     a, b = build_revision(args.rev, args.build_dir), cpu_backend.load_extension()
     print(f"A = {args.rev}, B = working tree; {args.threads} threads, median of {args.repeats}")
     for n, width, height in SIZES:

@@ -122,6 +122,7 @@ def run_raster_benchmark(
 ) -> list[RasterRecord]:
     """Time every backend on every (size, image). Returns one record per combination."""
     device = torch.device(device)
+    torch.set_flush_denormal(True)  # as training runs (Trainer): denormal arithmetic is many times slower
     records = []
     for n in sizes:
         scene = benchmark_scene(n, device=device)

@@ -390,3 +390,30 @@ def test_kernel_threads_can_differ_from_torchs_on_the_calling_thread():
         set_kernel_threads(0)
         torch.set_num_threads(previous)
     assert all(torch.equal(a, b) for a, b in zip(serial, split))
+
+
+def test_kernel_threads_run_under_the_callers_denormal_mode():
+    """Every chunk of a kernel runs with the calling thread's flush-to-zero / denormals-are-zero mode, also on pool
+    workers started under another mode (the trainer sets torch.set_flush_denormal(True) on its own thread)."""
+    ext = cpu_backend.load_extension()
+    W = H = 256
+    ys, xs = torch.meshgrid(torch.arange(8, 256, 16.0), torch.arange(8, 256, 16.0), indexing="ij")
+    m2 = torch.stack([xs.flatten(), ys.flatten()], 1)
+    n = len(m2)
+    conics = torch.tensor([[0.01, 0.0, 0.01]]).repeat(n, 1)
+    opac, depths = torch.full((n,), 0.5), torch.linspace(1.0, 2.0, n)
+    colors = torch.full((n, 3), 1e-38)  # below the smallest normal float32 (1.18e-38)
+    ids, offsets, rows = ext.bin_tiles(m2, conics, opac, torch.full((n, 2), 40.0), depths, W, H, True)
+    previous = torch.get_num_threads()
+    try:
+        torch.set_num_threads(3)
+        for flush in (False, True, False, True):
+            torch.set_flush_denormal(flush)
+            color = ext.forward(m2, conics, opac, colors, depths, ids, offsets, 16, 16, W, H, rows)[0]
+            if flush:
+                assert torch.count_nonzero(color) == 0
+            else:
+                assert bool((color > 0).all())
+    finally:
+        torch.set_flush_denormal(False)
+        torch.set_num_threads(previous)
