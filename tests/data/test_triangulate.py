@@ -130,11 +130,9 @@ def subset(scene, paths, source):
     )
 
 
-def test_trainer_starts_from_triangulated_points_when_the_scene_has_none(photographed, tmp_path, monkeypatch):
-    from metegs.engine.config import TrainConfig
-
-    scene, paths = photographed
-    posed_only = subset(scene, paths, source=tmp_path)
+@pytest.fixture
+def fake_triangulation(monkeypatch):
+    """Replaces triangulate_known_poses by one returning 500 fixed points; -> (calls [(views, cache dir)], points)."""
     calls = []
     points = np.random.default_rng(0).normal(size=(500, 3)).astype(np.float32)
 
@@ -143,6 +141,15 @@ def test_trainer_starts_from_triangulated_points_when_the_scene_has_none(photogr
         return tri.TriangulatedPoints(points, np.full_like(points, 0.5), len(image_paths), 0.5, cache=None)
 
     monkeypatch.setattr(tri, "triangulate_known_poses", fake)
+    return calls, points
+
+
+def test_trainer_starts_from_triangulated_points_when_the_scene_has_none(photographed, tmp_path, fake_triangulation):
+    from metegs.engine.config import TrainConfig
+
+    scene, paths = photographed
+    posed_only = subset(scene, paths, source=tmp_path)
+    calls, points = fake_triangulation
     config = TrainConfig(max_steps=1, progress=False, output_dir=tmp_path / "runs")
     trainer = config.setup(scene=posed_only)
     assert calls == [(len(trainer.dataset.train_indices), tmp_path / tri.CACHE_DIR)]
@@ -167,26 +174,19 @@ def test_trainer_falls_back_to_random_points_when_triangulation_fails(photograph
     assert trainer.random_init and "only 3 points" in trainer.decisions["init"]
 
 
-def test_resuming_or_reopening_a_run_does_not_triangulate_again(photographed, tmp_path, monkeypatch):
+def test_resuming_or_reopening_a_run_does_not_triangulate_again(photographed, tmp_path, fake_triangulation):
     from metegs.engine.config import TrainConfig
     from metegs.gaussians.ply import load_ply, save_ply
 
     scene, paths = photographed
     posed_only = subset(scene, paths, source=tmp_path)
-    calls = []
-    points = np.random.default_rng(1).normal(size=(300, 3)).astype(np.float32)
-
-    def fake(image_paths, cameras, cache_dir, opts=None):
-        calls.append(len(image_paths))
-        return tri.TriangulatedPoints(points, np.full_like(points, 0.5), len(image_paths), 0.5, cache=None)
-
-    monkeypatch.setattr(tri, "triangulate_known_poses", fake)
+    calls, _ = fake_triangulation
     config = TrainConfig(max_steps=2, progress=False, output_dir=tmp_path / "runs")
     trainer = config.setup(scene=posed_only)
     trainer.train_step(trainer.dataset.train_indices[0])
     trainer.step = 1
     ckpt = trainer.save()
-    assert calls == [len(trainer.dataset.train_indices)]
+    assert len(calls) == 1
 
     resumed = replace(config, load_checkpoint=ckpt).setup(scene=posed_only)
     assert len(calls) == 1, "a resumed run rebuilt (triangulated) the initial Gaussians it then replaced"
