@@ -84,7 +84,7 @@ class Trainer:
         self._random_init: bool | None = None
         ckpt = None if config.load_checkpoint is None else load_checkpoint(config.load_checkpoint, self.device)
         if ckpt is not None:
-            self.model = GaussianModel.from_state(ckpt["params"], ckpt["sh_degree"]).to(self.device)
+            self.model = self._checkpoint_model(ckpt)
             if "random_init" in ckpt:  # older checkpoints: found again from the scene (cached triangulation)
                 self._random_init = bool(ckpt["random_init"])
         elif model is not None:
@@ -106,7 +106,7 @@ class Trainer:
         self.run_dir = Path(run_dir) if run_dir is not None else self._default_run_dir()
         self.setup_method()
         if ckpt is not None:
-            self._restore(ckpt)
+            self._restore_state(ckpt)
 
     # --- setup -------------------------------------------------------------------------------------
     def decide(self, key: str, text: str) -> None:
@@ -438,12 +438,17 @@ class Trainer:
 
     def load(self, path: Path) -> None:
         """Resume from a checkpoint: parameters (any count), optimiser moments, statistics, step."""
-        self._restore(load_checkpoint(path, self.device))
-
-    def _restore(self, ckpt: dict) -> None:
-        """Take the state of a loaded checkpoint (see `load`)."""
-        self.model = GaussianModel.from_state(ckpt["params"], ckpt["sh_degree"]).to(self.device)
+        ckpt = load_checkpoint(path, self.device)
+        self.model = self._checkpoint_model(ckpt)
         self.optimizers = make_optimizers(self.model.params, self.config.optim, self.extent)
+        self._restore_state(ckpt)
+
+    def _checkpoint_model(self, ckpt: dict) -> GaussianModel:
+        """The scene Gaussians of a loaded checkpoint, on the run's device."""
+        return GaussianModel.from_state(ckpt["params"], ckpt["sh_degree"]).to(self.device)
+
+    def _restore_state(self, ckpt: dict) -> None:
+        """Everything of a loaded checkpoint but the Gaussians (already `_checkpoint_model`'s, with fresh optimisers)."""
         for k, o in self.optimizers.items():
             o.load_state_dict(ckpt["optimizers"][k])
         self.densifier.load_state_dict(ckpt.get("densifier", {}))

@@ -57,6 +57,7 @@ template <typename scalar_t>
 using MaskInt = std::conditional_t<sizeof(scalar_t) == 4, int32_t, int64_t>;
 template <typename scalar_t>
 using Mask = typename VecN<MaskInt<scalar_t>, TS>::type;
+using I32 = VecN<int32_t, TS>::type;  // a tile row of the saved list lengths
 
 template <typename V, typename S>
 inline __attribute__((always_inline)) V splat(S s) {
@@ -264,7 +265,6 @@ void forward_kernel(const Packed<scalar_t>* __restrict__ pk, const scalar_t* __r
   using C = Consts<scalar_t>;
   using V = Vec<scalar_t>;
   using M = Mask<scalar_t>;
-  using I32 = typename VecN<int32_t, TS>::type;
   const int64_t D = channels<DC>(D_);
   const int64_t ntiles = tiles_x * tiles_y;
   std::atomic<int64_t> next{0};
@@ -371,7 +371,6 @@ void backward_kernel(const Packed<scalar_t>* __restrict__ pk, const scalar_t* __
   const int64_t D = channels<DC>(D_);
   const int64_t ntiles = tiles_x * tiles_y;
   const int64_t stride = NGRAD + D;
-  using I32 = typename VecN<int32_t, TS>::type;
   std::atomic<int64_t> next{0};
   run_on_threads([&]() {
     // One record per tile row, so that a row's state shares cache lines. gC3, rC3 (DC == 3): dL/dcolour image
