@@ -82,6 +82,46 @@ inline __attribute__((always_inline)) scalar_t row_sum(Vec<scalar_t> v) {
   return hsum<scalar_t, TS>(v);
 }
 
+// The lane sums of v[0..9] as lanes 0..9 of one vector (lanes 10..15: 0). A transposing tree: each level adds
+// the two halves of pairs of vectors side by side (16 -> 8 -> 4 -> 2 -> 1 partial sums per input), about 35
+// shuffles and adds instead of 10 separate 16-lane reductions (about 80). Fixed order: deterministic.
+inline __attribute__((always_inline)) Vec<float> row_sums10(const Vec<float> (&v)[10]) {
+  using V = Vec<float>;
+  using I = I32;
+  const V z{};
+  // level 1: lanes 0-7 partial sums of x, lanes 8-15 of y
+  auto l1 = [](V x, V y) {
+    return __builtin_shuffle(x, y, I{0, 1, 2, 3, 4, 5, 6, 7, 16, 17, 18, 19, 20, 21, 22, 23}) +
+           __builtin_shuffle(x, y, I{8, 9, 10, 11, 12, 13, 14, 15, 24, 25, 26, 27, 28, 29, 30, 31});
+  };
+  auto l2 = [](V x, V y) {
+    return __builtin_shuffle(x, y, I{0, 1, 2, 3, 16, 17, 18, 19, 8, 9, 10, 11, 24, 25, 26, 27}) +
+           __builtin_shuffle(x, y, I{4, 5, 6, 7, 20, 21, 22, 23, 12, 13, 14, 15, 28, 29, 30, 31});
+  };
+  auto l3 = [](V x, V y) {
+    return __builtin_shuffle(x, y, I{0, 1, 16, 17, 4, 5, 20, 21, 8, 9, 24, 25, 12, 13, 28, 29}) +
+           __builtin_shuffle(x, y, I{2, 3, 18, 19, 6, 7, 22, 23, 10, 11, 26, 27, 14, 15, 30, 31});
+  };
+  auto l4 = [](V x, V y) {
+    return __builtin_shuffle(x, y, I{0, 16, 2, 18, 4, 20, 6, 22, 8, 24, 10, 26, 12, 28, 14, 30}) +
+           __builtin_shuffle(x, y, I{1, 17, 3, 19, 5, 21, 7, 23, 9, 25, 11, 27, 13, 29, 15, 31});
+  };
+  const V b0 = l1(v[0], v[1]), b1 = l1(v[2], v[3]), b2 = l1(v[4], v[5]), b3 = l1(v[6], v[7]), b4 = l1(v[8], v[9]);
+  const V c0 = l2(b0, b1), c1 = l2(b2, b3), c2 = l2(b4, z);
+  const V e = l4(l3(c0, c1), l3(c2, z));
+  // lane i of e holds input bitreverse4(i); the same permutation puts input k in lane k
+  return __builtin_shuffle(e, I{0, 8, 4, 12, 2, 10, 6, 14, 1, 9, 5, 13, 3, 11, 7, 15});
+}
+
+// Stores lanes [0, n) of v at dst.
+inline __attribute__((always_inline)) void store_first(float* dst, Vec<float> v, int n) {
+#if defined(__AVX512F__)
+  _mm512_mask_storeu_ps(dst, static_cast<__mmask16>((1u << n) - 1), (__m512)v);
+#else
+  for (int i = 0; i < n; ++i) dst[i] = v[i];
+#endif
+}
+
 template <typename scalar_t>
 struct Consts {
   static constexpr scalar_t alpha_max = scalar_t(0.99);
@@ -139,6 +179,21 @@ inline __attribute__((always_inline)) Vec<float> neg_exp(Vec<float> x) {
 inline __attribute__((always_inline)) Vec<double> neg_exp(Vec<double> x) {
   for (int i = 0; i < TS; ++i) x[i] = std::exp(x[i]);
   return x;
+}
+
+// 1 / x per lane for x in [0.01, 1] (1 - alpha). AVX-512: the 14-bit estimate and one Newton step (relative
+// error about 1e-7, well under the gradients' tolerance; a division stalls the backward's row loop); else 1 / x.
+inline __attribute__((always_inline)) Vec<float> recip(Vec<float> x) {
+#if defined(__AVX512F__)
+  const Vec<float> r = (Vec<float>)_mm512_rcp14_ps((__m512)x);
+  return fmadd(r, fmadd(-x, r, splat<Vec<float>>(1.0f)), r);  // r + r (1 - x r)
+#else
+  return 1.0f / x;
+#endif
+}
+
+inline __attribute__((always_inline)) Vec<double> recip(Vec<double> x) {
+  return 1.0 / x;
 }
 
 // One Gaussian's alphas on one tile row, the single definition used by forward and backward so that both
@@ -311,15 +366,15 @@ void forward_kernel(const Packed<scalar_t>* __restrict__ pk, const scalar_t* __r
           const V stop = Tn < tmin ? valid : zero;  // T would fall below T_MIN
           const V contrib = valid - stop;
           const V wv = contrib * (alpha * st[r].T);
-          st[r].dep += wv * z;
+          st[r].dep = fmadd(wv, splat<V>(z), st[r].dep);
           const M used = contrib > half;
           st[r].T = used ? Tn : st[r].T;
           st[r].last = used ? jp1 : st[r].last;
           st[r].done += stop;
           if constexpr (DC == 3) {
-            st[r].col[0] += wv * P.col[0];
-            st[r].col[1] += wv * P.col[1];
-            st[r].col[2] += wv * P.col[2];
+            st[r].col[0] = fmadd(wv, splat<V>(P.col[0]), st[r].col[0]);
+            st[r].col[1] = fmadd(wv, splat<V>(P.col[1]), st[r].col[1]);
+            st[r].col[2] = fmadd(wv, splat<V>(P.col[2]), st[r].col[2]);
           } else {
             st[r].w = wv;
           }
@@ -328,7 +383,7 @@ void forward_kernel(const Packed<scalar_t>* __restrict__ pk, const scalar_t* __r
           for (int64_t d = 0; d < D; ++d) {
             const scalar_t cd = colors[g * D + d];
             V* cr = colbuf.data() + d * TS;
-            for (int r = r0; r < r1; ++r) cr[r] += st[r].w * cd;
+            for (int r = r0; r < r1; ++r) cr[r] = fmadd(st[r].w, splat<V>(cd), cr[r]);
           }
         }
         if ((j & 7) == 7) {  // whole-tile early exit
@@ -373,17 +428,17 @@ void backward_kernel(const Packed<scalar_t>* __restrict__ pk, const scalar_t* __
   const int64_t stride = NGRAD + D;
   std::atomic<int64_t> next{0};
   run_on_threads([&]() {
-    // One record per tile row, so that a row's state shares cache lines. gC3, rC3 (DC == 3): dL/dcolour image
-    // and the colour composited behind, per channel.
+    // One record per tile row, so that a row's state shares cache lines. gAT: dL/dalpha_image T_final;
+    // gC3 (DC == 3): dL/dcolour image per channel; U: what is composited behind the current Gaussian, weighted by
+    // the image gradients, sum_d behind_d dL/dC_d + behind_depth dL/dD (the only form in which the colours and
+    // depth behind enter the gradients, so one vector replaces one per channel).
     struct alignas(64) Row {
-      V T, Tf, gA, gD, restZ, gC3[3], rC3[3];
+      V T, gAT, gD, U, gC3[3];
       M last;
-      V s, av, w;
+      V w;
     } st[TS];
     int32_t row_last[TS];  // per row, the largest list length a pixel used
-    std::vector<V> buf(DC == 3 ? 0 : 2 * D * TS);
-    V* gC = buf.data();           // DC == 0: [D][row]
-    V* restC = gC + (DC == 3 ? 0 : D * TS);
+    std::vector<V> gC(DC == 3 ? 0 : D * TS);  // DC == 0: dL/dcolour image, [D][row]
     const V zero = V{}, one = splat<V>(scalar_t(1)), half = splat<V>(scalar_t(0.5));
     const V amin = splat<V>(C::alpha_min), amax = splat<V>(C::alpha_max);
     for (;;) {
@@ -397,8 +452,9 @@ void backward_kernel(const Packed<scalar_t>* __restrict__ pk, const scalar_t* __
       int32_t jmax = 0;
       const int64_t nx = std::min<int64_t>(TS, W - x0);
       for (int r = 0; r < TS; ++r) {
-        std::memcpy(&st[r].T, saved_T + t * TP + r * TS, sizeof(V));
-        st[r].Tf = st[r].T;
+        V Tf;
+        std::memcpy(&Tf, saved_T + t * TP + r * TS, sizeof(V));
+        st[r].T = Tf;
         I32 lr;
         std::memcpy(&lr, saved_last + t * TP + r * TS, sizeof(I32));
         st[r].last = __builtin_convertvector(lr, M);
@@ -407,7 +463,7 @@ void backward_kernel(const Packed<scalar_t>* __restrict__ pk, const scalar_t* __
         jmax = std::max(jmax, row_last[r]);
         const int64_t y = y0 + r;
         const int64_t n_in = y < H ? nx : 0, pix = y < H ? y * W + x0 : 0;
-        st[r].gA = load_lanes<V>(g_alpha + pix, n_in);
+        st[r].gAT = load_lanes<V>(g_alpha + pix, n_in) * Tf;
         st[r].gD = load_lanes<V>(g_depth + pix, n_in);
         for (int64_t d = 0; d < D; ++d) {
           V gcd = zero;
@@ -415,10 +471,8 @@ void backward_kernel(const Packed<scalar_t>* __restrict__ pk, const scalar_t* __
           if constexpr (DC == 3) st[r].gC3[d] = gcd;
           else gC[d * TS + r] = gcd;
         }
-        st[r].restZ = zero;
-        for (int d = 0; d < 3; ++d) st[r].rC3[d] = zero;
+        st[r].U = zero;
       }
-      std::fill(buf.begin() + (DC == 3 ? 0 : D * TS), buf.end(), zero);
       // list entries no pixel reached get zero gradients
       std::fill(out + (off + jmax) * stride, out + (off + n) * stride, scalar_t(0));
       for (int64_t j = static_cast<int64_t>(jmax) - 1; j >= 0; --j) {
@@ -431,79 +485,75 @@ void backward_kernel(const Packed<scalar_t>* __restrict__ pk, const scalar_t* __
         int r0, r1;
         row_range(P, y0, r0, r1);
         const V dx = px - mx, adx2 = (a * dx) * dx, bdx = b * dx;
-        const V adx = a * dx, ndx = -dx, hdx2 = (scalar_t(-0.5) * dx) * dx;
-        V gmx = zero, gmy = zero, ga = zero, gb = zero, gc_ = zero, go = zero, gz = zero;
-        V gk0 = zero, gk1 = zero, gk2 = zero;
+        // dpower/d(a, b, c, mx, my) are products of dx (per lane) and dy (per row): the row loop sums
+        // dL/dpower, dL/dpower dy and dL/dpower dy^2 (s0, s1, s2), and the lanes' factors are applied once.
+        V s0 = zero, s1 = zero, s2 = zero, go = zero, gz = zero, gk0 = zero, gk1 = zero, gk2 = zero;
         for (int r = r0; r < r1; ++r) {
           if (row_last[r] <= j) continue;  // every pixel of the row stopped before this Gaussian
-          if constexpr (DC != 3) {
-            // s = sum_d (c_d - colour composited behind) * dL/dC_d: needs no alpha of this Gaussian.
-            V sr = zero;
-            for (int64_t d = 0; d < D; ++d) sr += (cg[d] - restC[d * TS + r]) * gC[d * TS + r];
-            st[r].s = sr;
-          }
           const scalar_t dy = (static_cast<scalar_t>(y0 + r) + scalar_t(0.5)) - my;
           const auto ra = row_alpha<scalar_t>(adx2, bdx, dy, c, o);
           const V power = ra.power, e = ra.e, oe = ra.oe, alpha = ra.alpha;
           const V listed = jj < st[r].last ? one : zero;
           const V valid = alpha >= amin ? listed : zero;
-          const V inv_om = one / (one - alpha);  // alpha <= 0.99
-          const V Tdiv = st[r].T * inv_om;
-          const V Tj = valid > half ? Tdiv : st[r].T;  // transmittance in front of it
+          const V inv_om = recip(one - alpha);  // alpha <= 0.99
+          const V Tj = valid > half ? st[r].T * inv_om : st[r].T;  // transmittance in front of it
           const V a_v = valid * alpha;
           const V wv = a_v * Tj;
-          V sp;
+          // q = (c - colour behind) . dL/dC + (z - depth behind) dL/dD
+          V cgz = z * st[r].gD;
           if constexpr (DC == 3) {
-            sp = (cg[0] - st[r].rC3[0]) * st[r].gC3[0];
-            sp += (cg[1] - st[r].rC3[1]) * st[r].gC3[1];
-            sp += (cg[2] - st[r].rC3[2]) * st[r].gC3[2];
+            cgz = fmadd(splat<V>(cg[0]), st[r].gC3[0], cgz);
+            cgz = fmadd(splat<V>(cg[1]), st[r].gC3[1], cgz);
+            cgz = fmadd(splat<V>(cg[2]), st[r].gC3[2], cgz);
           } else {
-            sp = st[r].s;
+            for (int64_t d = 0; d < D; ++d) cgz = fmadd(splat<V>(cg[d]), gC[d * TS + r], cgz);
           }
-          // d(colour, depth)/dalpha = T_j (c - behind); d(1 - T_final)/dalpha = T_final / (1 - alpha)
-          const V dLda = Tj * (sp + (z - st[r].restZ) * st[r].gD) + st[r].gA * st[r].Tf * inv_om;
+          const V q = cgz - st[r].U;
+          // d(colour, depth)/dalpha = T_j q; d(1 - T_final)/dalpha = T_final / (1 - alpha)
+          const V dLda = fmadd(Tj, q, st[r].gAT * inv_om);
           const V unclamped = oe <= amax ? valid : zero;
           const V dLdoe = unclamped > half ? dLda : zero;
-          go += dLdoe * e;
+          go = fmadd(dLdoe, e, go);
           const V dLdpow = power <= zero ? dLdoe * oe : zero;
-          ga += dLdpow * hdx2;
-          gc_ += dLdpow * ((scalar_t(-0.5) * dy) * dy);
-          gb += dLdpow * (ndx * dy);
-          gmx += dLdpow * (adx + b * dy);  // dpower/dmx = -dpower/ddx
-          gmy += dLdpow * ((c * dy) + bdx);
-          gz += wv * st[r].gD;
-          st[r].restZ = st[r].restZ * (one - a_v) + a_v * z;
+          s0 += dLdpow;
+          s1 = fmadd(dLdpow, splat<V>(dy), s1);
+          s2 = fmadd(dLdpow, splat<V>(dy * dy), s2);
+          gz = fmadd(wv, st[r].gD, gz);
+          st[r].U = fmadd(a_v, q, st[r].U);
           st[r].T = Tj;
           if constexpr (DC == 3) {
-            gk0 += wv * st[r].gC3[0];
-            gk1 += wv * st[r].gC3[1];
-            gk2 += wv * st[r].gC3[2];
-            for (int d = 0; d < 3; ++d) st[r].rC3[d] = st[r].rC3[d] * (one - a_v) + a_v * cg[d];
+            gk0 = fmadd(wv, st[r].gC3[0], gk0);
+            gk1 = fmadd(wv, st[r].gC3[1], gk1);
+            gk2 = fmadd(wv, st[r].gC3[2], gk2);
           } else {
-            st[r].av = a_v;
             st[r].w = wv;
           }
         }
+        // power = -0.5 (a dx^2 + c dy^2) - b dx dy with dx = px - mx, dy = py - my
         scalar_t* __restrict__ o_row = out + (off + j) * stride;
-        o_row[0] = row_sum<scalar_t>(gmx);
-        o_row[1] = row_sum<scalar_t>(gmy);
-        o_row[2] = row_sum<scalar_t>(ga);
-        o_row[3] = row_sum<scalar_t>(gb);
-        o_row[4] = row_sum<scalar_t>(gc_);
-        o_row[5] = row_sum<scalar_t>(go);
-        o_row[6] = row_sum<scalar_t>(gz);
-        if constexpr (DC == 3) {
+        const V per_lane[7] = {
+            fmadd(a * dx, s0, b * s1),          // mx: dpower/dmx = a dx + b dy
+            fmadd(splat<V>(c), s1, bdx * s0),   // my: dpower/dmy = c dy + b dx
+            ((scalar_t(-0.5) * dx) * dx) * s0,  // a
+            -dx * s1,                           // b
+            scalar_t(-0.5) * s2,                // c
+            go, gz};
+        if constexpr (DC == 3 && std::is_same_v<scalar_t, float>) {
+          store_first(o_row, row_sums10({per_lane[0], per_lane[1], per_lane[2], per_lane[3], per_lane[4], per_lane[5],
+                                         per_lane[6], gk0, gk1, gk2}),
+                      NGRAD + 3);
+        } else if constexpr (DC == 3) {
+          for (int k = 0; k < NGRAD; ++k) o_row[k] = row_sum<scalar_t>(per_lane[k]);
           o_row[NGRAD] = row_sum<scalar_t>(gk0);
           o_row[NGRAD + 1] = row_sum<scalar_t>(gk1);
           o_row[NGRAD + 2] = row_sum<scalar_t>(gk2);
         } else {
+          for (int k = 0; k < NGRAD; ++k) o_row[k] = row_sum<scalar_t>(per_lane[k]);
           for (int64_t d = 0; d < D; ++d) {
-            const scalar_t cd = cg[d];
             V gcol = zero;
             for (int r = r0; r < r1; ++r) {
               if (row_last[r] <= j) continue;
-              gcol += st[r].w * gC[d * TS + r];
-              restC[d * TS + r] = restC[d * TS + r] * (one - st[r].av) + st[r].av * cd;
+              gcol = fmadd(st[r].w, gC[d * TS + r], gcol);
             }
             o_row[NGRAD + d] = row_sum<scalar_t>(gcol);
           }
@@ -621,8 +671,8 @@ std::vector<at::Tensor> composite_backward(at::Tensor means2d, at::Tensor conics
   const at::Tensor row_h = resolve_rows(rows, conics, opac);
   auto per_isect = at::empty({M, S}, means2d.options());
   const auto opts = means2d.options();
-  std::vector<at::Tensor> outs = {at::zeros({N, 2}, opts), at::zeros({N, 3}, opts), at::zeros({N}, opts),
-                                  at::zeros({N, D}, opts), at::zeros({N}, opts)};
+  std::vector<at::Tensor> outs = {at::empty({N, 2}, opts), at::empty({N, 3}, opts), at::empty({N}, opts),
+                                  at::empty({N, D}, opts), at::empty({N}, opts)};  // every element written below
   AT_DISPATCH_FLOATING_TYPES(dt, "metegs_composite_backward", [&] {
     const auto pk = pack<scalar_t>(means2d, conics, opac, colors, depths, row_h);
     auto run = [&](auto kernel) {
@@ -633,20 +683,33 @@ std::vector<at::Tensor> composite_backward(at::Tensor means2d, at::Tensor conics
     };
     if (D == 3) run(backward_kernel<scalar_t, 3>);
     else run(backward_kernel<scalar_t, 0>);
-    // Reduce the intersections to their Gaussians, one output tensor per task (no two threads share a
-    // cache line), each summed in list order: deterministic.
-    const int64_t first[5] = {0, 2, 5, 7, 6};  // per_isect column of each output's first column
+    // Reduce the intersections to their Gaussians: two fixed halves of the list, each summed in list order into
+    // its own [N, S] buffer (one scattered cache line per intersection, on two threads when there are two), then
+    // both added into the outputs. The same sums for any thread count: deterministic.
     const int64_t* __restrict__ idp = ids.data_ptr<int64_t>();
     const scalar_t* __restrict__ src = per_isect.data_ptr<scalar_t>();
-    metegs::parallel_for(0, 5, 1, [&](int64_t begin, int64_t end) {
-      for (int64_t k = begin; k < end; ++k) {
-        const int64_t w = outs[k].numel() / std::max<int64_t>(N, 1), c0 = first[k];
-        scalar_t* __restrict__ dst = outs[k].data_ptr<scalar_t>();
-        for (int64_t m = 0; m < M; ++m) {
-          scalar_t* __restrict__ row = dst + idp[m] * w;
-          const scalar_t* __restrict__ r = src + m * S + c0;
-          for (int64_t c = 0; c < w; ++c) row[c] += r[c];
+    std::vector<scalar_t> acc(2 * N * S, scalar_t(0));
+    metegs::parallel_for(0, 2, 1, [&](int64_t begin, int64_t end) {
+      for (int64_t h = begin; h < end; ++h) {
+        scalar_t* __restrict__ dst = acc.data() + h * N * S;
+        for (int64_t m = h * M / 2, m1 = (h + 1) * M / 2; m < m1; ++m) {
+          scalar_t* __restrict__ row = dst + idp[m] * S;
+          const scalar_t* __restrict__ r = src + m * S;
+          for (int64_t c = 0; c < S; ++c) row[c] += r[c];
         }
+      }
+    });
+    scalar_t *g_m2 = outs[0].data_ptr<scalar_t>(), *g_con = outs[1].data_ptr<scalar_t>();
+    scalar_t *g_op = outs[2].data_ptr<scalar_t>(), *g_col = outs[3].data_ptr<scalar_t>();
+    scalar_t* g_dep = outs[4].data_ptr<scalar_t>();
+    metegs::parallel_for(0, N, 4096, [&](int64_t begin, int64_t end) {
+      for (int64_t g = begin; g < end; ++g) {
+        const scalar_t *p = acc.data() + g * S, *q = p + N * S;
+        g_m2[2 * g] = p[0] + q[0], g_m2[2 * g + 1] = p[1] + q[1];
+        for (int k = 0; k < 3; ++k) g_con[3 * g + k] = p[2 + k] + q[2 + k];
+        g_op[g] = p[5] + q[5];
+        g_dep[g] = p[6] + q[6];
+        for (int64_t d = 0; d < D; ++d) g_col[D * g + d] = p[NGRAD + d] + q[NGRAD + d];
       }
     });
   });
