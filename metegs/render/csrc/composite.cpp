@@ -14,15 +14,18 @@
 // backward's sums stay in vector registers until the Gaussian's last row. The forward saves per pixel the
 // final transmittance and the number of list entries it used; the backward walks back to front from that
 // state, recovering T_i = T_{i+1} / (1 - alpha_i) (alpha <= 0.99, so stable), and skips the rows whose pixels
-// all stopped before the Gaussian. Gradients are written per intersection (tile, list position) — every slot
-// has one owner, so no atomics — and then summed per Gaussian in list order. Deterministic.
+// all stopped before the Gaussian. What lies behind a Gaussian (colours and depth composited after it) enters
+// the gradients only through its dot product with the image gradients, so the backward carries that one sum
+// per pixel instead of one per channel. Gradients are written per intersection (tile, list position) — every
+// slot has one owner, so no atomics — and then summed per Gaussian over two fixed halves of the list, each in
+// list order. Deterministic, and the same for any thread count.
 // Each op first gathers every Gaussian's inputs into one 64-byte record (Packed) and prefetches the records a
 // few list entries ahead: the lists visit Gaussians in scattered order, and those loads were the largest
 // stall (benchmarks/ab_kernels.py: 1.3x forward, 1.2x backward at 20k Gaussians, 300x200, 1 thread).
 //
 // Built with -ffp-contract=off so that the forward and the backward recompute bit-identical alphas
-// (the skip decision alpha >= 1/255 must agree) and the operation order matches the torch code; the exp
-// polynomial fuses its multiply-adds explicitly (fmadd), in the one function both use.
+// (the skip decision alpha >= 1/255 must agree): multiply-adds are fused only where written (fmadd), the
+// same way in both, and the alpha itself comes from the one function both use (row_alpha).
 
 #include "metegs_cpu.h"
 
