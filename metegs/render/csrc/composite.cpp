@@ -85,35 +85,30 @@ inline __attribute__((always_inline)) scalar_t row_sum(Vec<scalar_t> v) {
   return hsum<scalar_t, TS>(v);
 }
 
-// The lane sums of v[0..9] as lanes 0..9 of one vector (lanes 10..15: 0). A transposing tree: each level adds
-// the two halves of pairs of vectors side by side (16 -> 8 -> 4 -> 2 -> 1 partial sums per input), about 35
-// shuffles and adds instead of 10 separate 16-lane reductions (about 80). Fixed order: deterministic.
+// One level of a transposing reduction tree: x and y each hold partial sums in blocks of 2H lanes; the result
+// holds, per block, the sums of x's two halves (H lanes) and then those of y's. 16 / (2H) blocks.
+template <int H>
+inline __attribute__((always_inline)) Vec<float> fold(Vec<float> x, Vec<float> y) {
+  I32 lo, hi;
+  for (int l = 0; l < TS; ++l) {
+    const int block = l / (2 * H) * (2 * H), from_y = (l % (2 * H)) / H, k = l % H;
+    lo[l] = 16 * from_y + block + k;
+    hi[l] = 16 * from_y + block + H + k;
+  }
+  return __builtin_shuffle(x, y, lo) + __builtin_shuffle(x, y, hi);
+}
+
+// The lane sums of v[0..9] as lanes 0..9 of one vector (lanes 10..15: 0), by four levels of `fold` (16 -> 8 ->
+// 4 -> 2 -> 1 partial sums per input): about 35 shuffles and adds instead of 10 separate 16-lane reductions
+// (about 80). Fixed order: deterministic.
 inline __attribute__((always_inline)) Vec<float> row_sums10(const Vec<float> (&v)[10]) {
-  using V = Vec<float>;
-  using I = I32;
-  const V z{};
-  // level 1: lanes 0-7 partial sums of x, lanes 8-15 of y
-  auto l1 = [](V x, V y) {
-    return __builtin_shuffle(x, y, I{0, 1, 2, 3, 4, 5, 6, 7, 16, 17, 18, 19, 20, 21, 22, 23}) +
-           __builtin_shuffle(x, y, I{8, 9, 10, 11, 12, 13, 14, 15, 24, 25, 26, 27, 28, 29, 30, 31});
-  };
-  auto l2 = [](V x, V y) {
-    return __builtin_shuffle(x, y, I{0, 1, 2, 3, 16, 17, 18, 19, 8, 9, 10, 11, 24, 25, 26, 27}) +
-           __builtin_shuffle(x, y, I{4, 5, 6, 7, 20, 21, 22, 23, 12, 13, 14, 15, 28, 29, 30, 31});
-  };
-  auto l3 = [](V x, V y) {
-    return __builtin_shuffle(x, y, I{0, 1, 16, 17, 4, 5, 20, 21, 8, 9, 24, 25, 12, 13, 28, 29}) +
-           __builtin_shuffle(x, y, I{2, 3, 18, 19, 6, 7, 22, 23, 10, 11, 26, 27, 14, 15, 30, 31});
-  };
-  auto l4 = [](V x, V y) {
-    return __builtin_shuffle(x, y, I{0, 16, 2, 18, 4, 20, 6, 22, 8, 24, 10, 26, 12, 28, 14, 30}) +
-           __builtin_shuffle(x, y, I{1, 17, 3, 19, 5, 21, 7, 23, 9, 25, 11, 27, 13, 29, 15, 31});
-  };
-  const V b0 = l1(v[0], v[1]), b1 = l1(v[2], v[3]), b2 = l1(v[4], v[5]), b3 = l1(v[6], v[7]), b4 = l1(v[8], v[9]);
-  const V c0 = l2(b0, b1), c1 = l2(b2, b3), c2 = l2(b4, z);
-  const V e = l4(l3(c0, c1), l3(c2, z));
+  const Vec<float> z{};
+  const Vec<float> c0 = fold<4>(fold<8>(v[0], v[1]), fold<8>(v[2], v[3]));
+  const Vec<float> c1 = fold<4>(fold<8>(v[4], v[5]), fold<8>(v[6], v[7]));
+  const Vec<float> c2 = fold<4>(fold<8>(v[8], v[9]), z);
+  const Vec<float> e = fold<1>(fold<2>(c0, c1), fold<2>(c2, z));
   // lane i of e holds input bitreverse4(i); the same permutation puts input k in lane k
-  return __builtin_shuffle(e, I{0, 8, 4, 12, 2, 10, 6, 14, 1, 9, 5, 13, 3, 11, 7, 15});
+  return __builtin_shuffle(e, I32{0, 8, 4, 12, 2, 10, 6, 14, 1, 9, 5, 13, 3, 11, 7, 15});
 }
 
 // Stores lanes [0, n) of v at dst.
