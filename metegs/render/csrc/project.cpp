@@ -151,6 +151,82 @@ inline __attribute__((always_inline)) void store(S_<L>* base, int64_t stride, L 
 inline __attribute__((always_inline)) void store_i32(int32_t* base, int32_t v) { base[0] = v; }
 inline __attribute__((always_inline)) void store_i32(int32_t* base, VI v) { std::memcpy(base, &v, sizeof(v)); }
 
+// In-place transpose of a 16 x 16 float block held as 16 vectors: four butterfly stages, each swapping the
+// off-diagonal S x S blocks of every 2S x 2S block with 16 two-vector shuffles (64 in all).
+template <int S>
+inline __attribute__((always_inline)) void transpose_stage(VF (&r)[LANES]) {
+  VI lo, hi;
+  for (int l = 0; l < LANES; ++l) {
+    lo[l] = (l & S) ? LANES + l - S : l;
+    hi[l] = (l & S) ? LANES + l : l + S;
+  }
+  for (int i = 0; i < LANES; ++i)
+    if (!(i & S)) {
+      const VF a = r[i], b = r[i + S];
+      r[i] = __builtin_shuffle(a, b, lo);
+      r[i + S] = __builtin_shuffle(a, b, hi);
+    }
+}
+inline __attribute__((always_inline)) void transpose16(VF (&r)[LANES]) {
+  transpose_stage<8>(r);
+  transpose_stage<4>(r);
+  transpose_stage<2>(r);
+  transpose_stage<1>(r);
+}
+
+// The first n (<= 16) floats at src as a vector (zeros after them), and the reverse.
+inline __attribute__((always_inline)) VF load_first(const float* src, int64_t n) {
+#if defined(__AVX512F__)
+  return (VF)_mm512_maskz_loadu_ps(static_cast<__mmask16>((1u << n) - 1), src);
+#else
+  VF v{};
+  std::memcpy(&v, src, n * sizeof(float));
+  return v;
+#endif
+}
+inline __attribute__((always_inline)) void store_first(float* dst, VF v, int64_t n) {
+#if defined(__AVX512F__)
+  _mm512_mask_storeu_ps(dst, static_cast<__mmask16>((1u << n) - 1), (__m512)v);
+#else
+  std::memcpy(dst, &v, n * sizeof(float));
+#endif
+}
+
+// The SH coefficients q = 3 k + channel, q < nq, of the lane group whose first Gaussian's row (row floats per
+// Gaussian) starts at c: coef[q] holds coefficient q of every lane. Vectors: 16 rows of 16 floats loaded and
+// transposed per 16 coefficients (a gather per coefficient and a scatter per gradient cost several times more).
+template <typename L>
+inline void load_sh(const S_<L>* c, int64_t row, int nq, L* coef) {
+  if constexpr (Lane<L>::N == 1) {
+    for (int q = 0; q < nq; ++q) coef[q] = c[q];
+  } else {
+    for (int q0 = 0; q0 < nq; q0 += LANES) {
+      const int64_t n = std::min<int64_t>(LANES, row - q0);  // floats of a row from q0 on
+      VF r[LANES];
+      for (int l = 0; l < LANES; ++l) r[l] = load_first(c + l * row + q0, n);
+      transpose16(r);
+      for (int j = 0; j < LANES && q0 + j < nq; ++j) coef[q0 + j] = r[j];
+    }
+  }
+}
+
+// The inverse of load_sh for gradients: grad[q], q < nq, into each Gaussian's row; zeros at q in [nq, row).
+template <typename L>
+inline void store_sh(S_<L>* c, int64_t row, int nq, const L* grad) {
+  if constexpr (Lane<L>::N == 1) {
+    for (int q = 0; q < nq; ++q) c[q] = grad[q];
+    std::fill(c + nq, c + row, S_<L>(0));
+  } else {
+    for (int64_t q0 = 0; q0 < row; q0 += LANES) {
+      const int64_t n = std::min<int64_t>(LANES, row - q0);
+      VF r[LANES];
+      for (int j = 0; j < LANES; ++j) r[j] = q0 + j < nq ? grad[q0 + j] : VF{};
+      transpose16(r);
+      for (int l = 0; l < LANES; ++l) store_first(c + l * row + q0, r[l], n);
+    }
+  }
+}
+
 template <typename T>
 struct Camera {
   T R[9], t[3], fx, fy, cx, cy, campos[3];
@@ -458,10 +534,11 @@ std::vector<at::Tensor> project_forward(at::Tensor means, at::Tensor quats, at::
       B_<L> raw_ok;
       view_dir(cam, in.mean, d, dn, raw_ok);
       sh_basis(deg, d[0], d[1], d[2], basis);
-      const T* c = shp + g * KS * 3;
+      L coef[48];
+      load_sh<L>(shp + g * KS * 3, KS * 3, 3 * nb, coef);
       for (int ch = 0; ch < 3; ++ch) {
         L v = zero;
-        for (int k = 0; k < nb; ++k) v += basis[k] * load<L>(c + 3 * k + ch, KS * 3);
+        for (int k = 0; k < nb; ++k) v += basis[k] * coef[3 * k + ch];
         v += T(0.5);
         store<L>(col + 3 * g + ch, 3, sel(v > T(0), v, zero));
       }
@@ -487,11 +564,11 @@ std::vector<at::Tensor> project_backward(at::Tensor means, at::Tensor quats, at:
               "bad gradient shapes for the projection backward");
   const int deg = static_cast<int>(sh_degree);
   const int nb = (deg + 1) * (deg + 1);
-  // every element is written below (the SH bands above sh_degree only when there are some): no fill
+  // every element is written below (zeros in the SH bands above sh_degree): no fill
   auto gm = at::empty({N, 3}, means.options());
   auto gq = at::empty({N, 4}, means.options());
   auto gs = at::empty({N, 3}, means.options());
-  auto gsh = KS > nb ? at::zeros({N, KS, 3}, means.options()) : at::empty({N, KS, 3}, means.options());
+  auto gsh = at::empty({N, KS, 3}, means.options());
   AT_DISPATCH_FLOATING_TYPES(dt, "metegs_project_backward", [&] {
     using T = scalar_t;
     const auto cam = make_camera<T>(viewmat, K, campos, width, height, near_plane, far_plane, eps2d);
@@ -510,26 +587,24 @@ std::vector<at::Tensor> project_backward(at::Tensor means, at::Tensor quats, at:
       B_<L> raw_ok;
       const B_<L> dclamped = view_dir(cam, in.mean, d, dn, raw_ok);
       sh_basis(deg, d[0], d[1], d[2], basis);
-      const T* c = shp + g * KS * 3;
-      L coef[16][3], gc[3];
+      L coef[48], gc[3];
+      load_sh<L>(shp + g * KS * 3, KS * 3, 3 * nb, coef);
       B_<L> any = zero != zero;
       for (int ch = 0; ch < 3; ++ch) {
         L v = zero;
-        for (int k = 0; k < nb; ++k) {
-          coef[k][ch] = load<L>(c + 3 * k + ch, KS * 3);
-          v += basis[k] * coef[k][ch];
-        }
+        for (int k = 0; k < nb; ++k) v += basis[k] * coef[3 * k + ch];
         v += T(0.5);
         gc[ch] = sel(v >= T(0), load<L>(gcol + 3 * g + ch, 3), zero);  // clamp_min(0) passes the gradient at v >= 0
         any |= gc[ch] != T(0);
       }
-      T* osh = ogsh + g * KS * 3;
+      L gsh_q[48];
       for (int k = 0; k < nb; ++k)
-        for (int ch = 0; ch < 3; ++ch) store<L>(osh + 3 * k + ch, KS * 3, basis[k] * gc[ch]);
+        for (int ch = 0; ch < 3; ++ch) gsh_q[3 * k + ch] = basis[k] * gc[ch];
+      store_sh<L>(ogsh + g * KS * 3, KS * 3, 3 * nb, gsh_q);
       L gmean[3] = {zero, zero, zero};
       if (deg > 0) {
         L w[16], gd[3];
-        for (int k = 1; k < nb; ++k) w[k] = coef[k][0] * gc[0] + coef[k][1] * gc[1] + coef[k][2] * gc[2];
+        for (int k = 1; k < nb; ++k) w[k] = coef[3 * k] * gc[0] + coef[3 * k + 1] * gc[1] + coef[3 * k + 2] * gc[2];
         sh_basis_grad_dot(deg, d[0], d[1], d[2], w, gd);
         const L dot = sel(dclamped, zero, d[0] * gd[0] + d[1] * gd[1] + d[2] * gd[2]);
         for (int i = 0; i < 3; ++i) gmean[i] = sel(any & raw_ok, (gd[i] - d[i] * dot) / dn, zero);
