@@ -161,14 +161,15 @@ std::vector<at::Tensor> bin_tiles(at::Tensor means2d, at::Tensor conics, at::Ten
       const T* e = ep + 2 * g;
       return (e[0] > 0 && e[1] > 0) ? tile_rect(mp + 2 * g, e, tiles_x, tiles_y) : Rect{0, 0, 0, 0};
     };
-    // fn(j) for each candidate tile of g that passes the test, j = its row-major index in the rectangle r.
-    auto for_each_tile = [&](int64_t g, const Rect& r, auto&& fn) {
+    // fn(j) for each candidate tile of g that passes the test, j = its row-major index in the rectangle r;
+    // thresh = alpha_threshold(opacity of g).
+    auto for_each_tile = [&](int64_t g, const Rect& r, double thresh, auto&& fn) {
       const int64_t w = r.x1 - r.x0;
       if (!cull) {
         for (int64_t j = 0; j < w * (r.y1 - r.y0); ++j) fn(j);
         return;
       }
-      const Footprint f = footprint(mp + 2 * g, cp + 3 * g, alpha_threshold(op[g]));
+      const Footprint f = footprint(mp + 2 * g, cp + 3 * g, thresh);
       for (int64_t ty = r.y0; ty < r.y1; ++ty)
         for (int64_t tx = r.x0; tx < r.x1; ++tx)
           if (tile_reached(f, tx, ty, width, height)) fn((ty - r.y0) * w + tx - r.x0);
@@ -184,18 +185,19 @@ std::vector<at::Tensor> bin_tiles(at::Tensor means2d, at::Tensor conics, at::Ten
     constexpr uint64_t NO_MASK = ~uint64_t(0);
     metegs::parallel_for(0, N, 256, [&](int64_t begin, int64_t end) {
       for (int64_t g = begin; g < end; ++g) {
-        rowp[g] = row_half_height(cp[3 * g], cp[3 * g + 1], cp[3 * g + 2], op[g]);
+        const double thresh = alpha_threshold(op[g]);  // one logarithm for the row span and the tile test
+        rowp[g] = row_half_height_at(thresh, cp[3 * g], cp[3 * g + 1], cp[3 * g + 2]);
         const Rect r = candidates(g);
         const int64_t area = (r.x1 - r.x0) * (r.y1 - r.y0);
         int64_t n = 0;
         uint64_t bits = 0;
         if (area <= 64) {
-          for_each_tile(g, r, [&](int64_t j) {
+          for_each_tile(g, r, thresh, [&](int64_t j) {
             bits |= uint64_t(1) << j;
             ++n;
           });
         } else {
-          for_each_tile(g, r, [&](int64_t) { ++n; });
+          for_each_tile(g, r, thresh, [&](int64_t) { ++n; });
           bits = NO_MASK;
         }
         mask[g] = bits;
@@ -220,7 +222,7 @@ std::vector<at::Tensor> bin_tiles(at::Tensor means2d, at::Tensor conics, at::Ten
         const Rect r = candidates(g);
         int64_t k = start[i];
         if (mask[g] == NO_MASK)
-          for_each_tile(g, r, [&](int64_t j) { tiles_of[k++] = tile_of(r, j); });
+          for_each_tile(g, r, alpha_threshold(op[g]), [&](int64_t j) { tiles_of[k++] = tile_of(r, j); });
         else
           for (uint64_t bits = mask[g]; bits; bits &= bits - 1) tiles_of[k++] = tile_of(r, __builtin_ctzll(bits));
       }

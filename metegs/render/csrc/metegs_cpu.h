@@ -24,11 +24,16 @@ inline double alpha_threshold(T opacity) {
 // quadratic form is at least dy^2 (ac - b^2) / a, so only rows with |dy| <= sqrt(2 ln(255 o) a / (ac - b^2))
 // can contribute (with a small safety margin); +inf when the conic is not positive definite (no culling).
 // bin_tiles computes it once per Gaussian (it needs a log and a square root) for the compositing ops.
+// `thresh`: alpha_threshold(opacity), when the caller has it already.
 template <typename T>
-inline double row_half_height(T a, T b, T c, T opacity) {
+inline double row_half_height_at(double thresh, T a, T b, T c) {
   const double A = a, B = b, Cc = c, det = A * Cc - B * B;
   if (!(A > 0 && det > 0)) return std::numeric_limits<double>::infinity();
-  return std::sqrt(alpha_threshold(opacity) * A / det) * (1.0 + 1e-4) + 1e-3;
+  return std::sqrt(thresh * A / det) * (1.0 + 1e-4) + 1e-3;
+}
+template <typename T>
+inline double row_half_height(T a, T b, T c, T opacity) {
+  return row_half_height_at(alpha_threshold(opacity), a, b, c);
 }
 
 // project.cpp: fused EWA projection + SH colours and their backward.
