@@ -111,15 +111,6 @@ inline __attribute__((always_inline)) Vec<float> row_sums10(const Vec<float> (&v
   return __builtin_shuffle(e, I32{0, 8, 4, 12, 2, 10, 6, 14, 1, 9, 5, 13, 3, 11, 7, 15});
 }
 
-// Stores lanes [0, n) of v at dst.
-inline __attribute__((always_inline)) void store_first(float* dst, Vec<float> v, int n) {
-#if defined(__AVX512F__)
-  _mm512_mask_storeu_ps(dst, static_cast<__mmask16>((1u << n) - 1), (__m512)v);
-#else
-  for (int i = 0; i < n; ++i) dst[i] = v[i];
-#endif
-}
-
 template <typename scalar_t>
 struct Consts {
   static constexpr scalar_t alpha_max = scalar_t(0.99);
@@ -298,20 +289,26 @@ inline Vec<scalar_t> column_centres(int64_t x0) {
   return v;
 }
 
-// The n values at src as the lanes [0, n) of a vector, zeros in the others (n = 16: one unaligned load).
+// The n values at src as the lanes [0, n) of a vector, zeros in the others (float: load_first; else n = 16 is
+// one unaligned load).
 template <typename V, typename S>
 inline __attribute__((always_inline)) V load_lanes(const S* src, int64_t n) {
+  if constexpr (std::is_same_v<S, float>) return load_first(src, n);
   V v{};
   if (n == TS) std::memcpy(&v, src, sizeof(V));
   else for (int64_t i = 0; i < n; ++i) v[i] = src[i];
   return v;
 }
 
-// Stores the lanes [0, n) of v at dst (n = 16: one unaligned vector store).
+// Stores the lanes [0, n) of v at dst (float: store_first; else n = 16 is one unaligned vector store).
 template <typename V, typename S>
 inline __attribute__((always_inline)) void store_lanes(S* dst, const V& v, int64_t n) {
-  if (n == TS) std::memcpy(dst, &v, sizeof(V));
-  else for (int64_t i = 0; i < n; ++i) dst[i] = v[i];
+  if constexpr (std::is_same_v<S, float>) {
+    store_first(dst, v, n);
+  } else {
+    if (n == TS) std::memcpy(dst, &v, sizeof(V));
+    else for (int64_t i = 0; i < n; ++i) dst[i] = v[i];
+  }
 }
 
 template <typename scalar_t, int DC>
@@ -542,23 +539,24 @@ void backward_kernel(const Packed<scalar_t>* __restrict__ pk, const scalar_t* __
             scalar_t(-0.5) * s2,                // c
             go, gz};
         if constexpr (DC == 3 && std::is_same_v<scalar_t, float>) {
-          store_first(o_row, row_sums10({per_lane[0], per_lane[1], per_lane[2], per_lane[3], per_lane[4], per_lane[5],
+          store_lanes(o_row, row_sums10({per_lane[0], per_lane[1], per_lane[2], per_lane[3], per_lane[4], per_lane[5],
                                          per_lane[6], gk0, gk1, gk2}),
                       NGRAD + 3);
-        } else if constexpr (DC == 3) {
-          for (int k = 0; k < NGRAD; ++k) o_row[k] = row_sum<scalar_t>(per_lane[k]);
-          o_row[NGRAD] = row_sum<scalar_t>(gk0);
-          o_row[NGRAD + 1] = row_sum<scalar_t>(gk1);
-          o_row[NGRAD + 2] = row_sum<scalar_t>(gk2);
         } else {
           for (int k = 0; k < NGRAD; ++k) o_row[k] = row_sum<scalar_t>(per_lane[k]);
-          for (int64_t d = 0; d < D; ++d) {
-            V gcol = zero;
-            for (int r = r0; r < r1; ++r) {
-              if (row_last[r] <= j) continue;
-              gcol = fmadd(st[r].w, gC[d * TS + r], gcol);
+          if constexpr (DC == 3) {
+            o_row[NGRAD] = row_sum<scalar_t>(gk0);
+            o_row[NGRAD + 1] = row_sum<scalar_t>(gk1);
+            o_row[NGRAD + 2] = row_sum<scalar_t>(gk2);
+          } else {
+            for (int64_t d = 0; d < D; ++d) {
+              V gcol = zero;
+              for (int r = r0; r < r1; ++r) {
+                if (row_last[r] <= j) continue;
+                gcol = fmadd(st[r].w, gC[d * TS + r], gcol);
+              }
+              o_row[NGRAD + d] = row_sum<scalar_t>(gcol);
             }
-            o_row[NGRAD + d] = row_sum<scalar_t>(gcol);
           }
         }
       }

@@ -7,12 +7,39 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstring>
 #include <limits>
 #include <vector>
+#if defined(__AVX512F__)
+#include <immintrin.h>
+#endif
 
 namespace metegs_cpu {
 
 constexpr int TILE = 16;  // tile side (metegs.render.tiles.TILE_SIZE)
+
+// 16 float lanes (a tile row, or 16 Gaussians): one AVX-512 register, two AVX2 ones elsewhere.
+typedef float Float16 __attribute__((vector_size(16 * sizeof(float))));
+
+// The first n (0..16) floats at src as a Float16, zeros after them (AVX-512: one masked load).
+inline __attribute__((always_inline)) Float16 load_first(const float* src, int64_t n) {
+#if defined(__AVX512F__)
+  return (Float16)_mm512_maskz_loadu_ps(static_cast<__mmask16>((1u << n) - 1), src);
+#else
+  Float16 v{};
+  std::memcpy(&v, src, n * sizeof(float));
+  return v;
+#endif
+}
+
+// Stores lanes [0, n) of v at dst (AVX-512: one masked store).
+inline __attribute__((always_inline)) void store_first(float* dst, Float16 v, int64_t n) {
+#if defined(__AVX512F__)
+  _mm512_mask_storeu_ps(dst, static_cast<__mmask16>((1u << n) - 1), (__m512)v);
+#else
+  std::memcpy(dst, &v, n * sizeof(float));
+#endif
+}
 
 // 2 ln(255 o): the bound on the conic's quadratic form where alpha = o exp(-q / 2) reaches 1/255.
 template <typename T>

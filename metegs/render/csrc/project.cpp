@@ -117,6 +117,14 @@ inline __attribute__((always_inline)) int32_t to_i32(float x) { return static_ca
 inline __attribute__((always_inline)) int32_t to_i32(double x) { return static_cast<int32_t>(x); }
 inline __attribute__((always_inline)) VI to_i32(VF x) { return __builtin_convertvector(x, VI); }
 
+#if defined(__AVX512F__)
+// l * stride in lane l: the offsets of a gather or scatter over the 16 Gaussians of a block.
+inline __attribute__((always_inline)) __m512i lane_offsets(int64_t stride) {
+  return _mm512_mullo_epi32(_mm512_set_epi32(15, 14, 13, 12, 11, 10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 0),
+                            _mm512_set1_epi32(static_cast<int32_t>(stride)));
+}
+#endif
+
 // Lanes l of base[l * stride] (the N Gaussians of a block, one field each), and the reverse.
 template <typename L>
 inline __attribute__((always_inline)) L load(const S_<L>* base, int64_t stride) {
@@ -124,9 +132,7 @@ inline __attribute__((always_inline)) L load(const S_<L>* base, int64_t stride) 
     return base[0];
   } else {
 #if defined(__AVX512F__)
-    const __m512i idx = _mm512_mullo_epi32(_mm512_set_epi32(15, 14, 13, 12, 11, 10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 0),
-                                           _mm512_set1_epi32(static_cast<int32_t>(stride)));
-    return (L)_mm512_i32gather_ps(idx, base, 4);
+    return (L)_mm512_i32gather_ps(lane_offsets(stride), base, 4);
 #else
     L v;
     for (int i = 0; i < LANES; ++i) v[i] = base[i * stride];
@@ -140,9 +146,7 @@ inline __attribute__((always_inline)) void store(S_<L>* base, int64_t stride, L 
     base[0] = v;
   } else {
 #if defined(__AVX512F__)
-    const __m512i idx = _mm512_mullo_epi32(_mm512_set_epi32(15, 14, 13, 12, 11, 10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 0),
-                                           _mm512_set1_epi32(static_cast<int32_t>(stride)));
-    _mm512_i32scatter_ps(base, idx, (__m512)v, 4);
+    _mm512_i32scatter_ps(base, lane_offsets(stride), (__m512)v, 4);
 #else
     for (int i = 0; i < LANES; ++i) base[i * stride] = v[i];
 #endif
@@ -172,24 +176,6 @@ inline __attribute__((always_inline)) void transpose16(VF (&r)[LANES]) {
   transpose_stage<4>(r);
   transpose_stage<2>(r);
   transpose_stage<1>(r);
-}
-
-// The first n (<= 16) floats at src as a vector (zeros after them), and the reverse.
-inline __attribute__((always_inline)) VF load_first(const float* src, int64_t n) {
-#if defined(__AVX512F__)
-  return (VF)_mm512_maskz_loadu_ps(static_cast<__mmask16>((1u << n) - 1), src);
-#else
-  VF v{};
-  std::memcpy(&v, src, n * sizeof(float));
-  return v;
-#endif
-}
-inline __attribute__((always_inline)) void store_first(float* dst, VF v, int64_t n) {
-#if defined(__AVX512F__)
-  _mm512_mask_storeu_ps(dst, static_cast<__mmask16>((1u << n) - 1), (__m512)v);
-#else
-  std::memcpy(dst, &v, n * sizeof(float));
-#endif
 }
 
 // The SH coefficients q = 3 k + channel, q < nq, of the lane group whose first Gaussian's row (row floats per
@@ -422,6 +408,30 @@ inline B_<L> view_dir(const Camera<S_<L>>& cam, const L* mean, L* d, L& norm, B_
   return clamped;
 }
 
+// A lane group's view-dependent colour before the clamp at 0, and what the backward needs of it again.
+template <typename L>
+struct Shading {
+  L d[3], dn;  // unit view direction, distance (clamped at 1e-12)
+  B_<L> dclamped, raw_ok;  // view_dir's masks
+  L basis[16];
+  L coef[48];  // SH coefficients, q = 3 k + channel
+  L v[3];      // sum_k basis_k coef_k + 0.5, per channel
+};
+
+// c: the group's first SH row (row floats per Gaussian).
+template <typename L>
+inline void shade(const Camera<S_<L>>& cam, const L* mean, const S_<L>* c, int64_t row, int degree, Shading<L>& s) {
+  const int nb = (degree + 1) * (degree + 1);
+  s.dclamped = view_dir(cam, mean, s.d, s.dn, s.raw_ok);
+  sh_basis(degree, s.d[0], s.d[1], s.d[2], s.basis);
+  load_sh<L>(c, row, 3 * nb, s.coef);
+  for (int ch = 0; ch < 3; ++ch) {
+    L v = cst<L>(0);
+    for (int k = 0; k < nb; ++k) v += s.basis[k] * s.coef[3 * k + ch];
+    s.v[ch] = v + S_<L>(0.5);
+  }
+}
+
 template <typename T>
 Camera<T> make_camera(const at::Tensor& viewmat, const at::Tensor& K, const at::Tensor& campos, int64_t width,
                       int64_t height, double near_plane, double far_plane, double eps2d) {
@@ -513,7 +523,6 @@ std::vector<at::Tensor> project_forward(at::Tensor means, at::Tensor quats, at::
     T *col = colors.data_ptr<T>(), *ex = extents.data_ptr<T>();
     int32_t* ra = radii.data_ptr<int32_t>();
     const int deg = static_cast<int>(sh_degree);
-    const int nb = (deg + 1) * (deg + 1);
     for_lanes<T>(N, [&](auto lane, int64_t g) {
       using L = decltype(lane);
       const Inputs<L> in = load_inputs<L>(mp, qp, sp, op, g);
@@ -530,18 +539,9 @@ std::vector<at::Tensor> project_forward(at::Tensor means, at::Tensor quats, at::
       store_i32(ra + g, to_i32(sel(keep, P.radius, zero)));
       store<L>(ex + 2 * g, 2, sel(keep, P.ext[0], zero));
       store<L>(ex + 2 * g + 1, 2, sel(keep, P.ext[1], zero));
-      L basis[16], d[3], dn;
-      B_<L> raw_ok;
-      view_dir(cam, in.mean, d, dn, raw_ok);
-      sh_basis(deg, d[0], d[1], d[2], basis);
-      L coef[48];
-      load_sh<L>(shp + g * KS * 3, KS * 3, 3 * nb, coef);
-      for (int ch = 0; ch < 3; ++ch) {
-        L v = zero;
-        for (int k = 0; k < nb; ++k) v += basis[k] * coef[3 * k + ch];
-        v += T(0.5);
-        store<L>(col + 3 * g + ch, 3, sel(v > T(0), v, zero));
-      }
+      Shading<L> sc;
+      shade(cam, in.mean, shp + g * KS * 3, KS * 3, deg, sc);
+      for (int ch = 0; ch < 3; ++ch) store<L>(col + 3 * g + ch, 3, sel(sc.v[ch] > T(0), sc.v[ch], zero));
     });
   });
   return {means2d, conics, depths, colors, radii, extents};
@@ -583,18 +583,13 @@ std::vector<at::Tensor> project_backward(at::Tensor means, at::Tensor quats, at:
       const L zero = cst<L>(0);
       const Inputs<L> in = load_inputs<L>(mp, qp, sp, op, g);
       // ---- colours: d colour / d (sh, direction) ----
-      L basis[16], d[3], dn;
-      B_<L> raw_ok;
-      const B_<L> dclamped = view_dir(cam, in.mean, d, dn, raw_ok);
-      sh_basis(deg, d[0], d[1], d[2], basis);
-      L coef[48], gc[3];
-      load_sh<L>(shp + g * KS * 3, KS * 3, 3 * nb, coef);
+      Shading<L> sc;
+      shade(cam, in.mean, shp + g * KS * 3, KS * 3, deg, sc);
+      const L *basis = sc.basis, *coef = sc.coef, *d = sc.d;
+      L gc[3];
       B_<L> any = zero != zero;
       for (int ch = 0; ch < 3; ++ch) {
-        L v = zero;
-        for (int k = 0; k < nb; ++k) v += basis[k] * coef[3 * k + ch];
-        v += T(0.5);
-        gc[ch] = sel(v >= T(0), load<L>(gcol + 3 * g + ch, 3), zero);  // clamp_min(0) passes the gradient at v >= 0
+        gc[ch] = sel(sc.v[ch] >= T(0), load<L>(gcol + 3 * g + ch, 3), zero);  // clamp_min(0) passes it at v >= 0
         any |= gc[ch] != T(0);
       }
       L gsh_q[48];
@@ -606,8 +601,8 @@ std::vector<at::Tensor> project_backward(at::Tensor means, at::Tensor quats, at:
         L w[16], gd[3];
         for (int k = 1; k < nb; ++k) w[k] = coef[3 * k] * gc[0] + coef[3 * k + 1] * gc[1] + coef[3 * k + 2] * gc[2];
         sh_basis_grad_dot(deg, d[0], d[1], d[2], w, gd);
-        const L dot = sel(dclamped, zero, d[0] * gd[0] + d[1] * gd[1] + d[2] * gd[2]);
-        for (int i = 0; i < 3; ++i) gmean[i] = sel(any & raw_ok, (gd[i] - d[i] * dot) / dn, zero);
+        const L dot = sel(sc.dclamped, zero, d[0] * gd[0] + d[1] * gd[1] + d[2] * gd[2]);
+        for (int i = 0; i < 3; ++i) gmean[i] = sel(any & sc.raw_ok, (gd[i] - d[i] * dot) / sc.dn, zero);
       }
 
       // ---- geometry ----
