@@ -357,6 +357,72 @@ def test_binning_matches_torch_and_culling_is_a_subset(seed, ties):
         assert kept == [i for i in full if i in set(kept)]  # a sub-list, still front to back
 
 
+def _rect_qmin(a, b, c, X0, X1, Y0, Y1):
+    """Minimum of a x^2 + 2 b x y + c y^2 (positive definite) over the rectangles [X0, X1] x [Y0, Y1] (float64)."""
+    inside = (X0 <= 0) & (X1 >= 0) & (Y0 <= 0) & (Y1 >= 0)
+    best = torch.full_like(X0, math.inf)
+    for X in (X0, X1):
+        y = (-b * X / c).clamp(Y0, Y1)
+        best = torch.minimum(best, a * X * X + 2 * b * X * y + c * y * y)
+    for Y in (Y0, Y1):
+        x = (-b * Y / a).clamp(X0, X1)
+        best = torch.minimum(best, a * x * x + 2 * b * x * Y + c * Y * Y)
+    return torch.where(inside, torch.zeros_like(best), best)
+
+
+@pytest.mark.parametrize("thin", [False, True])
+def test_culled_tiles_are_those_the_ellipse_reaches(thin):
+    """Brute force over every candidate tile: each tile whose pixel centres some Gaussian's alpha reaches (1/255,
+    i.e. q <= 2 ln(255 o) at a centre) is in the Gaussian's list, and every kept tile's rectangle of pixel centres
+    comes within the safety margin of the ellipse (the margin grows with the anisotropy: thin ellipses)."""
+    gen = torch.Generator().manual_seed(7 + thin)
+    n, W, H = 400, 150, 110
+    means2d = torch.rand(n, 2, generator=gen) * torch.tensor([W + 40.0, H + 40.0]) - 20.0
+    angle = torch.rand(n, generator=gen) * math.pi
+    s1 = 0.5 + 6.0 * torch.rand(n, generator=gen)
+    s2 = s1 * (torch.rand(n, generator=gen) * (0.02 if thin else 1.0) + (0.002 if thin else 0.2))
+    cos, sin = angle.cos(), angle.sin()
+    # conic = inverse covariance of R diag(s1^2, s2^2) R^T
+    a = cos**2 / s1**2 + sin**2 / s2**2
+    c = sin**2 / s1**2 + cos**2 / s2**2
+    b = cos * sin * (1 / s1**2 - 1 / s2**2)
+    conics = torch.stack([a, b, c], 1).float()
+    opac = torch.rand(n, generator=gen).float() * 0.99 + 0.01
+    depths = torch.rand(n, generator=gen)
+    extents = torch.full((n, 2), 3.0 * float(s1.max()) + 2.0)
+    ext = cpu_backend.load_extension()
+    ids, offsets, _ = ext.bin_tiles(means2d, conics, opac, extents, depths, W, H, True)
+    tx_n, ty_n = (W + 15) // 16, (H + 15) // 16
+    kept = torch.zeros(n, ty_n * tx_n, dtype=torch.bool)
+    for t in range(ty_n * tx_n):
+        kept[ids[offsets[t]:offsets[t + 1]], t] = True
+    ty, tx = torch.meshgrid(torch.arange(ty_n), torch.arange(tx_n), indexing="ij")
+    ty, tx = ty.flatten().double(), tx.flatten().double()
+    m, con = means2d.double(), conics.double()
+    A, B, C = (con[:, k:k + 1] for k in range(3))
+    thresh = 2 * torch.log((255 * opac.double()).clamp_min(1.0))[:, None]
+    X0 = 16 * tx + 0.5 - m[:, :1]
+    X1 = torch.minimum(16 * tx + 16, torch.tensor(float(W))) - 0.5 - m[:, :1]
+    Y0 = 16 * ty + 0.5 - m[:, 1:]
+    Y1 = torch.minimum(16 * ty + 16, torch.tensor(float(H))) - 0.5 - m[:, 1:]
+    qmin = _rect_qmin(A, B, C, X0, X1, Y0, Y1)
+    # the smallest q at a pixel centre of each tile (the ones the compositing evaluates)
+    px, py = torch.arange(W).double() + 0.5, torch.arange(H).double() + 0.5
+    reached = torch.zeros_like(kept)
+    for g in range(n):
+        dx, dy = px[None, :] - m[g, 0], py[:, None] - m[g, 1]
+        q = A[g] * dx * dx + 2 * B[g] * dx * dy + C[g] * dy * dy
+        q = torch.nn.functional.pad(q, (0, 16 * tx_n - W, 0, 16 * ty_n - H), value=math.inf)
+        per_tile = q.reshape(ty_n, 16, tx_n, 16).amin(dim=(1, 3)).flatten()
+        reached[g] = per_tile <= thresh[g]
+    assert int(reached.sum()) > 200
+    assert not (reached & ~kept).any(), "a tile the ellipse reaches is missing from the lists"
+    det = A * C - B * B
+    margin = 1e-4 * (1 + thresh * (2 + 2 * (A * C + B * B) / det))
+    assert bool((qmin[kept] <= (thresh + margin).expand_as(qmin)[kept] * (1 + 1e-9)).all()), "a tile out of reach"
+    assert int(kept.sum()) <= int((qmin <= thresh + margin).sum())
+
+
 def test_row_half_heights_of_bin_tiles_equal_the_composite_fallback_and_bad_rows_are_refused():
     """The compositing op gives the same image and gradients with bin_tiles' row half-heights as when it
     computes them itself; rows of the wrong shape or dtype are a clear error."""
