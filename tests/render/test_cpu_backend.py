@@ -553,3 +553,36 @@ def test_kernel_threads_run_under_the_callers_denormal_mode():
     finally:
         torch.set_flush_denormal(False)
         torch.set_num_threads(previous)
+
+
+def test_compiled_finish_matches_finish_render_and_finite_differences():
+    """Background and expected depth (FinishRender): the same bits as pipeline.finish_render in float32, and its
+    gradients match finite differences in float64, pixels with no coverage (alpha 0, below the clamp) included."""
+    from metegs.render.cpu_backend import FinishRender
+    from metegs.render.pipeline import finish_render
+
+    gen = torch.Generator().manual_seed(3)
+    H, W = 7, 9
+    alpha = torch.rand(H, W, generator=gen)
+    alpha[0, :3] = 0.0
+    color = torch.rand(H, W, 3, generator=gen) * alpha[..., None]
+    depth_sum = torch.rand(H, W, generator=gen) * alpha * 4.0
+    settings = RenderSettings(background=(0.2, 0.4, 0.6))
+    bg = settings.background_tensor(color)
+    rgb, depth = FinishRender.apply(color, alpha, depth_sum, bg)
+    ref = finish_render(color, alpha, depth_sum, settings, None, None, 0)
+    assert torch.equal(rgb, ref.rgb) and torch.equal(depth, ref.depth)
+
+    inputs = [t.double().requires_grad_(True) for t in (color, alpha, depth_sum)]
+    inputs[1].data.clamp_(min=1e-3)  # away from the clamp's kink for the finite differences
+    assert torch.autograd.gradcheck(lambda c, a, d: FinishRender.apply(c, a, d, bg.double()), inputs)
+    # the clamp: no depth gradient reaches alpha where alpha < 1e-10, as in the torch ops
+    depth_sum[0, :3] = 0.5  # depth but no coverage: a zero-opacity contribution's sum
+    a = alpha.double().clone().requires_grad_(True)
+    d = depth_sum.double().clone().requires_grad_(True)
+    _, dep = FinishRender.apply(color.double(), a, d, bg.double())
+    dep.sum().backward()
+    a_ref, d_ref = alpha.double().clone().requires_grad_(True), depth_sum.double().clone().requires_grad_(True)
+    (d_ref / a_ref.clamp_min(1e-10)).sum().backward()
+    torch.testing.assert_close(a.grad, a_ref.grad)
+    torch.testing.assert_close(d.grad, d_ref.grad)

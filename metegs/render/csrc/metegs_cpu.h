@@ -91,4 +91,13 @@ std::vector<at::Tensor> composite_backward(at::Tensor means2d, at::Tensor conics
                               int64_t tiles_x, int64_t tiles_y, int64_t width, int64_t height,
                               c10::optional<at::Tensor> rows);
 
+// composite.cpp: the render's last step (pipeline.finish_render) on the compositing's outputs:
+// color [H, W, 3], alpha [H, W], depth_sum [H, W], background [3] -> rgb = color + (1 - alpha) background [H, W, 3],
+// depth = depth_sum / max(alpha, DEPTH_ALPHA_MIN) [H, W].
+constexpr double DEPTH_ALPHA_MIN = 1e-10;
+std::vector<at::Tensor> finish_forward(at::Tensor color, at::Tensor alpha, at::Tensor depth_sum, at::Tensor background);
+// -> gradients of color [H, W, 3] (g_rgb itself), alpha [H, W] and depth_sum [H, W]; g_alpha, g_depth: none = 0.
+std::vector<at::Tensor> finish_backward(at::Tensor alpha, at::Tensor depth_sum, at::Tensor background, at::Tensor g_rgb,
+                                        c10::optional<at::Tensor> g_alpha, c10::optional<at::Tensor> g_depth);
+
 }  // namespace metegs_cpu
