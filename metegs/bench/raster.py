@@ -41,7 +41,8 @@ class RasterRecord:
     forward_backward_ms: float
     """Median forward + L1 loss + backward time."""
     peak_mem_mb: float
-    """Peak memory above the level before the step (CPU: resident set; CUDA: allocator peak)."""
+    """Peak memory above the level before the step (CPU: resident set; CUDA: allocator peak), over up to 3
+    forward+backward steps after the timed ones."""
     num_intersections: int
     """(Tile, Gaussian) pairs the backend rasterised."""
     floor_ms: float
@@ -134,8 +135,12 @@ def run_raster_benchmark(
                 rasterizer = registry("rasterizer").get(name)()
                 _time_step(rasterizer, scene, cam, target, backward=True)  # warm-up (and extension load)
                 fwd = [_time_step(rasterizer, scene, cam, target, backward=False)[0] for _ in range(repeats)]
+                fb = [_time_step(rasterizer, scene, cam, target, backward=True) for _ in range(repeats)]
+                # memory in steps of their own: on CPU a thread samples the resident set every 0.5 ms, which
+                # would take CPU time and the GIL from the timed steps
                 with PeakMemory(device) as mem:
-                    fb = [_time_step(rasterizer, scene, cam, target, backward=True) for _ in range(repeats)]
+                    for _ in range(min(repeats, 3)):
+                        _time_step(rasterizer, scene, cam, target, backward=True)
                 records.append(
                     RasterRecord(
                         backend=name,

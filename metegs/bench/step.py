@@ -72,13 +72,17 @@ def run_step_benchmark(
             trainer.model = resampled_model(scene.points, scene.point_colors, n, trainer.model.max_sh_degree, 0)
             trainer.optimizers = make_optimizers(trainer.model.params, config.optim, trainer.extent)
             times = []
+            for i in range(repeats + 1):
+                t0 = time.perf_counter()
+                _train_step(trainer, views[i % len(views)])
+                if i > 0:  # the first step warms up
+                    times.append(time.perf_counter() - t0)
+            # memory in steps of their own: on CPU a thread samples the resident set every 0.5 ms, which would
+            # take CPU time and the GIL from the timed steps
             before = rss_mb()
             with PeakMemory(trainer.device) as mem:
-                for i in range(repeats + 1):
-                    t0 = time.perf_counter()
+                for i in range(min(repeats, 3)):
                     _train_step(trainer, views[i % len(views)])
-                    if i > 0:  # the first step warms up
-                        times.append(time.perf_counter() - t0)
             ms = statistics.median(times) * 1e3
             W, H = int(trainer.dataset.cameras.width[0]), int(trainer.dataset.cameras.height[0])
             records.append(StepRecord(backend, n, W, H, ms, 1e3 / ms, before, mem.peak_mb))

@@ -2,20 +2,23 @@
 #include "metegs_cpu.h"
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
-  m.def("project_forward", &metegs_cpu::project_forward, "fused EWA projection + SH colours (CPU)");
-  m.def("project_backward", &metegs_cpu::project_backward, "backward of project_forward (CPU)");
-  m.def("bin_tiles", &metegs_cpu::bin_tiles, "depth-sorted per-tile Gaussian lists (CPU)");
-  m.def("forward", &metegs_cpu::composite_forward, "metegs tile compositing forward (CPU)", py::arg("means2d"),
+  // The ops release the GIL while they run, as torch's own ops do: other Python threads (the live viewer's
+  // server, a benchmark's memory sampler) go on meanwhile.
+  const auto nogil = py::call_guard<py::gil_scoped_release>();
+  m.def("project_forward", &metegs_cpu::project_forward, "fused EWA projection + SH colours (CPU)", nogil);
+  m.def("project_backward", &metegs_cpu::project_backward, "backward of project_forward (CPU)", nogil);
+  m.def("bin_tiles", &metegs_cpu::bin_tiles, "depth-sorted per-tile Gaussian lists (CPU)", nogil);
+  m.def("forward", &metegs_cpu::composite_forward, "metegs tile compositing forward (CPU)", nogil, py::arg("means2d"),
         py::arg("conics"), py::arg("opacities"), py::arg("colors"), py::arg("depths"), py::arg("ids"),
         py::arg("offsets"), py::arg("tiles_x"), py::arg("tiles_y"), py::arg("width"), py::arg("height"),
         py::arg("rows") = py::none());
-  m.def("backward", &metegs_cpu::composite_backward, "metegs tile compositing backward (CPU), per-Gaussian gradients",
+  m.def("backward", &metegs_cpu::composite_backward, "metegs tile compositing backward (CPU), per-Gaussian gradients", nogil,
         py::arg("means2d"), py::arg("conics"), py::arg("opacities"), py::arg("colors"), py::arg("depths"),
         py::arg("ids"), py::arg("offsets"), py::arg("saved_T"), py::arg("saved_last"), py::arg("g_color"),
         py::arg("g_alpha"), py::arg("g_depth"), py::arg("tiles_x"), py::arg("tiles_y"), py::arg("width"),
         py::arg("height"), py::arg("rows") = py::none());
-  m.def("finish_forward", &metegs_cpu::finish_forward, "background and expected depth of a render (CPU)");
-  m.def("finish_backward", &metegs_cpu::finish_backward, "backward of finish_forward (CPU)", py::arg("alpha"),
+  m.def("finish_forward", &metegs_cpu::finish_forward, "background and expected depth of a render (CPU)", nogil);
+  m.def("finish_backward", &metegs_cpu::finish_backward, "backward of finish_forward (CPU)", nogil, py::arg("alpha"),
         py::arg("depth_sum"), py::arg("background"), py::arg("g_rgb"), py::arg("g_alpha") = py::none(),
         py::arg("g_depth") = py::none());
   m.def("set_num_threads", [](int64_t n) { metegs::thread_override() = std::max<int64_t>(n, 0); },
