@@ -18,10 +18,14 @@ import tyro
 from rich.console import Console
 from rich.table import Table
 
+from metegs.bench.steal import StealMeter
 from metegs.cli import run_cli
 from metegs.config import atomic_write_text
 from metegs.errors import ConfigError
 from metegs.render.select import usable_backends
+
+STEAL_WARNING = 0.02
+"""Share of CPU time stolen by the hypervisor above which `raster` and `step` print a note."""
 
 
 @dataclass
@@ -40,7 +44,8 @@ class _BenchArgs:
     """Also write the JSON records to this file."""
 
     def setup(self) -> list[str]:
-        """Apply the thread count; -> the backends to time."""
+        """Apply the thread count and start measuring steal time; -> the backends to time."""
+        self._steal = StealMeter()
         if self.threads:
             torch.set_num_threads(self.threads)
         return self.backends or sorted(usable_backends(self.device), key=lambda n: n != "torch")
@@ -52,11 +57,23 @@ class _BenchArgs:
             atomic_write_text(self.output, json.dumps(rows, indent=2))
         if self.json:
             print(json.dumps(rows, indent=2))
-            return rows
-        for r in rows:
-            table.add_row(*row(r))
-        Console().print(table)
+        else:
+            for r in rows:
+                table.add_row(*row(r))
+            Console().print(table)
+        self.warn_steal()
         return rows
+
+    def warn_steal(self) -> None:
+        """On a virtual machine, say how much CPU time the hypervisor took while the benchmark ran."""
+        meter = getattr(self, "_steal", None)
+        stolen = meter.fraction() if meter is not None else None
+        if stolen is not None and stolen >= STEAL_WARNING:
+            Console(stderr=True).print(
+                f"[yellow]note[/]: the hypervisor gave {100 * stolen:.0f} % of this machine's CPU time to other "
+                "machines while this ran (steal time in /proc/stat): the timings are slower and noisier than on an "
+                "idle host", highlight=False,
+            )
 
 
 @dataclass
