@@ -7,8 +7,8 @@
 Each repetition trains `3dgs` on the built-in synthetic scene twice, once alone and once with `metegs-train
 --viewer`'s live viewer attached and a headless Chromium showing it (the user watching the clean render while
 it trains). Each run is its own Python process started with the environment `metegs-train` gives that mode
-(`metegs.cli.THREAD_ENV`: every metegs command sets a short OpenMP spin, which libgomp reads only when torch
-loads), so the ratio is that of the two commands a user runs. Steps/s are measured from step 20 on
+(`metegs.cli.train.thread_env`: the viewer mode sets a short OpenMP spin, which libgomp reads only when
+torch loads), so the ratio is that of the two commands a user runs. Steps/s are measured from step 20 on
 (after the page's start-up), and the table reports the median of each mode and the ratio. Needs Chromium and
 chromedriver (Debian: ``apt-get install chromium chromium-driver``) and selenium.
 """
@@ -116,11 +116,13 @@ def viewer_options(pairs: list[str]) -> dict:
 
 def run_worker(mode: str, args: argparse.Namespace, out: Path) -> dict:
     """One training run of ``mode`` ("alone" or "viewer") in a fresh process; its record."""
-    from metegs.cli import THREAD_ENV
+    from metegs.cli.train import thread_env
     from metegs.meteo.readers import parse_options
 
-    env = {**THREAD_ENV, **os.environ}  # what a metegs command runs with (the user's own settings win)
+    env = dict(os.environ)
     env.update(parse_options(args.env, "--env"))
+    if mode == "viewer":
+        env.update({k: v for k, v in thread_env(["--viewer"]).items() if k not in env})
     cmd = [sys.executable, __file__, "--worker", mode, "--steps", str(args.steps), "--threads", str(args.threads),
            "--settle", str(args.settle), "--window", args.window, "--out", str(out)]
     cmd += ["--no-browser"] if args.no_browser else []

@@ -6,6 +6,7 @@ config.yml, before the command-line flags, which win.
 
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -65,6 +66,20 @@ def pop_config_flag(argv: list[str]) -> tuple[list[str], Path | None]:
     return rest, path
 
 
+LIVE_VIEWER_ENV = {"GOMP_SPINCOUNT": "2000"}
+"""OpenMP settings of ``metegs-train --viewer`` (unless the user set them): torch's OpenMP threads sleep after
+about 2000 spins instead of 300000 when they wait, so a browser on the same cores does not make every
+parallel region of a training step wait for a descheduled thread (docs/benchmark.md has the measurement)."""
+
+
+def thread_env(argv: list[str]) -> dict[str, str]:
+    """Environment variables ``metegs-train`` sets for this command line before torch loads (libgomp reads them
+    once, at load)."""
+    if "--viewer" not in argv:
+        return {}
+    return {k: v for k, v in LIVE_VIEWER_ENV.items() if k not in os.environ}
+
+
 def parse_args(argv: list[str]) -> Any:
     """The TrainConfig that ``argv`` describes."""
     argv, config_path = pop_config_flag(argv)
@@ -100,6 +115,7 @@ def parse_args(argv: list[str]) -> Any:
 def main(argv: list[str] | None = None) -> dict:
     console = Console(stderr=True)
     argv = sys.argv[1:] if argv is None else argv
+    os.environ.update(thread_env(argv))  # no effect once torch is loaded (when main() is called in-process)
     config = parse_args(argv)
     trainer = config.setup(console=console)
     c = trainer.config
