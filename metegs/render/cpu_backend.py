@@ -223,8 +223,7 @@ class FinishRender(torch.autograd.Function):
         alpha, depth_sum, background = ctx.saved_tensors
         if g_rgb is None:
             g_rgb = alpha.new_zeros((*alpha.shape, 3))
-        g_color, g_alpha, g_depth_sum = load_extension().finish_backward(alpha, depth_sum, background, g_rgb, None,
-                                                                         g_depth)
+        g_color, g_alpha, g_depth_sum = load_extension().finish_backward(alpha, depth_sum, background, g_rgb, g_depth)
         return g_color, g_alpha, g_depth_sum, None
 
 

@@ -19,8 +19,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         py::arg("height"), py::arg("rows") = py::none());
   m.def("finish_forward", &metegs_cpu::finish_forward, "background and expected depth of a render (CPU)", nogil);
   m.def("finish_backward", &metegs_cpu::finish_backward, "backward of finish_forward (CPU)", nogil, py::arg("alpha"),
-        py::arg("depth_sum"), py::arg("background"), py::arg("g_rgb"), py::arg("g_alpha") = py::none(),
-        py::arg("g_depth") = py::none());
+        py::arg("depth_sum"), py::arg("background"), py::arg("g_rgb"), py::arg("g_depth") = py::none());
   m.def("set_num_threads", [](int64_t n) { metegs::thread_override() = std::max<int64_t>(n, 0); },
         "threads of the metegs kernels called from this thread (0: torch's intra-op count)", py::arg("n"));
   m.def("get_num_threads", &metegs::num_threads, "threads of the metegs kernels called from this thread");

@@ -232,13 +232,17 @@ std::vector<at::Tensor> bin_tiles(at::Tensor means2d, at::Tensor conics, at::Ten
     const int64_t nchunks = std::max<int64_t>(1, std::min<int64_t>(8 * metegs::num_threads(), NB / 512));
     const int64_t per_chunk = (NB + nchunks - 1) / nchunks;
     std::vector<int64_t> cursor(nchunks * ntiles, 0);
+    // fn(tile, g) for each list entry of chunk c, front to back.
+    auto for_each_entry = [&](int64_t c, auto&& fn) {
+      for (int64_t i = c * per_chunk, e = std::min(NB, (c + 1) * per_chunk); i < e; ++i)
+        each_span(ord[i], [&](int64_t ty, int64_t lo, int64_t hi) {
+          for (int64_t tx = lo; tx < hi; ++tx) fn(ty * tiles_x + tx, ord[i]);
+        });
+    };
     metegs::parallel_for(0, nchunks, 1, [&](int64_t begin, int64_t end) {
       for (int64_t c = begin; c < end; ++c) {
         int64_t* row_count = cursor.data() + c * ntiles;
-        for (int64_t i = c * per_chunk, e = std::min(NB, (c + 1) * per_chunk); i < e; ++i)
-          each_span(ord[i], [&](int64_t ty, int64_t lo, int64_t hi) {
-            for (int64_t tx = lo; tx < hi; ++tx) ++row_count[ty * tiles_x + tx];
-          });
+        for_each_entry(c, [&](int64_t t, int64_t) { ++row_count[t]; });
       }
     });
     int64_t* off = offsets.data_ptr<int64_t>();
@@ -257,11 +261,7 @@ std::vector<at::Tensor> bin_tiles(at::Tensor means2d, at::Tensor conics, at::Ten
     metegs::parallel_for(0, nchunks, 1, [&](int64_t begin, int64_t end) {
       for (int64_t c = begin; c < end; ++c) {
         int64_t* next = cursor.data() + c * ntiles;
-        auto write = [&](int64_t g, int64_t ty, int64_t lo, int64_t hi) {
-          for (int64_t tx = lo; tx < hi; ++tx) idp[next[ty * tiles_x + tx]++] = g;
-        };
-        for (int64_t i = c * per_chunk, e = std::min(NB, (c + 1) * per_chunk); i < e; ++i)
-          each_span(ord[i], [&](int64_t ty, int64_t lo, int64_t hi) { write(ord[i], ty, lo, hi); });
+        for_each_entry(c, [&](int64_t t, int64_t g) { idp[next[t]++] = g; });
       }
     });
   });

@@ -752,30 +752,28 @@ std::vector<at::Tensor> finish_forward(at::Tensor color, at::Tensor alpha, at::T
 }
 
 std::vector<at::Tensor> finish_backward(at::Tensor alpha, at::Tensor depth_sum, at::Tensor background, at::Tensor g_rgb,
-                                        c10::optional<at::Tensor> g_alpha, c10::optional<at::Tensor> g_depth) {
+                                        c10::optional<at::Tensor> g_depth) {
   check_finish(alpha, g_rgb, "g_rgb", 3);
   check_finish(alpha, depth_sum, "depth_sum", 0);
-  const bool has_ga = g_alpha.has_value() && g_alpha->defined(), has_gd = g_depth.has_value() && g_depth->defined();
-  if (has_ga) check_finish(alpha, *g_alpha, "g_alpha", 0);
+  const bool has_gd = g_depth.has_value() && g_depth->defined();
   if (has_gd) check_finish(alpha, *g_depth, "g_depth", 0);
   alpha = alpha.contiguous(), depth_sum = depth_sum.contiguous(), g_rgb = g_rgb.contiguous();
   background = background.to(alpha.scalar_type()).contiguous();
-  const at::Tensor ga = has_ga ? g_alpha->contiguous() : at::Tensor(), gd = has_gd ? g_depth->contiguous() : at::Tensor();
-  auto g_alpha_in = at::empty_like(alpha);
+  const at::Tensor gd = has_gd ? g_depth->contiguous() : at::Tensor();
+  auto g_alpha = at::empty_like(alpha);
   auto g_depth_sum = has_gd ? at::empty_like(alpha) : at::zeros_like(alpha);
   const int64_t P = alpha.numel();
   AT_DISPATCH_FLOATING_TYPES(alpha.scalar_type(), "metegs_finish_backward", [&] {
     const scalar_t *a = alpha.data_ptr<scalar_t>(), *d = depth_sum.data_ptr<scalar_t>(), *gr = g_rgb.data_ptr<scalar_t>();
     const scalar_t* bg = background.data_ptr<scalar_t>();
-    const scalar_t* gap = has_ga ? ga.data_ptr<scalar_t>() : nullptr;
     const scalar_t* gdp = has_gd ? gd.data_ptr<scalar_t>() : nullptr;
-    scalar_t *out_a = g_alpha_in.data_ptr<scalar_t>(), *out_d = g_depth_sum.data_ptr<scalar_t>();
+    scalar_t *out_a = g_alpha.data_ptr<scalar_t>(), *out_d = g_depth_sum.data_ptr<scalar_t>();
     const scalar_t amin = scalar_t(DEPTH_ALPHA_MIN);
     metegs::parallel_for(0, P, 16384, [&](int64_t begin, int64_t end) {
       for (int64_t p = begin; p < end; ++p) {
         // rgb = color + (1 - alpha) bg; depth = depth_sum / max(alpha, amin) (torch's clamp_min passes the
         // gradient where alpha >= amin)
-        scalar_t g = (gap ? gap[p] : scalar_t(0)) - (gr[3 * p] * bg[0] + gr[3 * p + 1] * bg[1] + gr[3 * p + 2] * bg[2]);
+        scalar_t g = -(gr[3 * p] * bg[0] + gr[3 * p + 1] * bg[1] + gr[3 * p + 2] * bg[2]);
         if (gdp) {
           const scalar_t den = std::max(a[p], amin);
           out_d[p] = gdp[p] / den;
@@ -785,7 +783,7 @@ std::vector<at::Tensor> finish_backward(at::Tensor alpha, at::Tensor depth_sum, 
       }
     });
   });
-  return {g_rgb, g_alpha_in, g_depth_sum};
+  return {g_rgb, g_alpha, g_depth_sum};
 }
 
 }  // namespace metegs_cpu

@@ -96,8 +96,9 @@ std::vector<at::Tensor> composite_backward(at::Tensor means2d, at::Tensor conics
 // depth = depth_sum / max(alpha, DEPTH_ALPHA_MIN) [H, W].
 constexpr double DEPTH_ALPHA_MIN = 1e-10;
 std::vector<at::Tensor> finish_forward(at::Tensor color, at::Tensor alpha, at::Tensor depth_sum, at::Tensor background);
-// -> gradients of color [H, W, 3] (g_rgb itself), alpha [H, W] and depth_sum [H, W]; g_alpha, g_depth: none = 0.
+// -> gradients of color [H, W, 3] (g_rgb itself), alpha [H, W] (the part through rgb and depth) and depth_sum
+// [H, W]; g_depth: none = 0.
 std::vector<at::Tensor> finish_backward(at::Tensor alpha, at::Tensor depth_sum, at::Tensor background, at::Tensor g_rgb,
-                                        c10::optional<at::Tensor> g_alpha, c10::optional<at::Tensor> g_depth);
+                                        c10::optional<at::Tensor> g_depth);
 
 }  // namespace metegs_cpu
