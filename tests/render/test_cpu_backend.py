@@ -423,6 +423,23 @@ def test_culled_tiles_are_those_the_ellipse_reaches(thin):
     assert int(kept.sum()) <= int((qmin <= thresh + margin).sum())
 
 
+def test_binning_beyond_65536_tile_columns_matches_torch():
+    """Tile columns past 16-bit range (an image over a million pixels wide) are listed where they belong."""
+    W, H, n = 1_100_000, 20, 6
+    means2d = torch.tensor([[1_050_000.0 + 37 * i, 9.0 + i] for i in range(n)])
+    conics = torch.tensor([[0.02, 0.0, 0.02]]).repeat(n, 1)
+    opac, depths, extents = torch.full((n,), 0.8), torch.arange(n, 0, -1).float(), torch.full((n, 2), 25.0)
+    ref = bin_gaussians(means2d, extents, depths, W, H)
+    ext = cpu_backend.load_extension()
+    ids, offsets, _ = ext.bin_tiles(means2d, conics, opac, extents, depths, W, H, False)
+    assert torch.equal(offsets, ref.offsets) and torch.equal(ids, ref.gaussian_ids)
+    cids, coffsets, _ = ext.bin_tiles(means2d, conics, opac, extents, depths, W, H, True)
+    tiles = torch.repeat_interleave(torch.arange(len(coffsets) - 1), coffsets.diff())
+    assert cids.numel() > 0 and bool((tiles % ((W + 15) // 16) * 16 >= 1_049_000).all())
+    mx = means2d[cids, 0]
+    assert bool(((tiles % ((W + 15) // 16)) * 16 <= mx + 25).all() & ((tiles % ((W + 15) // 16) + 1) * 16 >= mx - 25).all())
+
+
 def test_row_half_heights_of_bin_tiles_equal_the_composite_fallback_and_bad_rows_are_refused():
     """The compositing op gives the same image and gradients with bin_tiles' row half-heights as when it
     computes them itself; rows of the wrong shape or dtype are a clear error."""

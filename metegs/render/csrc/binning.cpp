@@ -200,7 +200,7 @@ std::vector<at::Tensor> bin_tiles(at::Tensor means2d, at::Tensor conics, at::Ten
         for_each_row(g, thresh[g], [&](int64_t ty, int64_t lo, int64_t hi) {
           if (S.nrows == 0) S.ty0 = static_cast<int32_t>(ty);
           const int64_t k = ty - S.ty0;
-          if (S.nrows >= 0 && k < ROWS) {
+          if (S.nrows >= 0 && k < ROWS && hi <= UINT16_MAX) {  // else (a very wide image too): found again
             for (int64_t j = S.nrows; j < k; ++j) S.lo[j] = S.hi[j] = 0;  // rows skipped in between
             S.lo[k] = static_cast<uint16_t>(lo), S.hi[k] = static_cast<uint16_t>(hi);
             S.nrows = static_cast<int16_t>(k + 1);
