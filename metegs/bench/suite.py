@@ -284,7 +284,7 @@ class SuiteRunner:
             "render_fps_repeats": self.suite.fps_repeats,
             "backend": getattr(config, "backend", None),
             "device": getattr(config, "device", None),
-            "wall_seconds": round(time.perf_counter() - started, 1),  # this invocation: setup, training, evaluation
+            "wall_seconds": round(time.perf_counter() - started, 3),  # this invocation: setup, training, evaluation
             **extra,
         }
         atomic_write_text(path, json.dumps(record, indent=2, default=str))
