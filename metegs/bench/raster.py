@@ -21,6 +21,7 @@ from metegs.cameras import Cameras
 from metegs.gaussians.model import GaussianSet
 from metegs.registry import registry
 from metegs.render.base import RenderSettings
+from metegs.render.cpu_backend import thread_split
 
 PEAK_GFLOPS = 330.0
 """Peak float32 FLOP/s of the 2-core AVX-512 CI machine (research note: 2 x 2.6 GHz x 2 FMA x 16 lanes x 2)."""
@@ -47,6 +48,8 @@ class RasterRecord:
     """(Tile, Gaussian) pairs the backend rasterised."""
     floor_ms: float
     """Arithmetic floor of the research note: 256 pixels x pairs of the plain 3-sigma binning x 100 flops at peak."""
+    torch_threads: int
+    """Threads of torch's own ops (the loss, autograd) while the backend ran."""
 
 
 def benchmark_scene(n: int, seed: int = 0, device: str | torch.device = "cpu") -> GaussianSet:
@@ -77,19 +80,20 @@ def _sync(device: torch.device) -> None:
 
 
 def _time_step(rasterizer, scene: GaussianSet, cam: Cameras, target: torch.Tensor, backward: bool) -> tuple[float, int]:
+    """One forward (and, with ``backward``, L1 loss and backward) of ``scene``, whose tensors are leaves that require
+    grad (their gradients are cleared first, outside the timed part) -> (milliseconds, pairs rasterised)."""
     device = scene.means.device
-    params = [
-        t.clone().requires_grad_(backward) for t in (scene.means, scene.quats, scene.scales, scene.opacities, scene.sh)
-    ]
     settings = RenderSettings(sh_degree=3)
+    for t in (scene.means, scene.quats, scene.scales, scene.opacities, scene.sh):
+        t.grad = None
     _sync(device)
     t0 = time.perf_counter()
     if backward:
-        out = rasterizer.render(GaussianSet(*params), cam, settings)
+        out = rasterizer.render(scene, cam, settings)
         (out.rgb - target).abs().mean().backward()
     else:
         with torch.no_grad():
-            out = rasterizer.render(GaussianSet(*params), cam, settings)
+            out = rasterizer.render(scene, cam, settings)
     _sync(device)
     return (time.perf_counter() - t0) * 1e3, out.num_intersections
 
@@ -119,14 +123,19 @@ def run_raster_benchmark(
     backends: list[str],
     repeats: int = 3,
     device: str | torch.device = "cpu",
+    torch_threads: int = 0,
     progress=None,
 ) -> list[RasterRecord]:
-    """Time every backend on every (size, image). Returns one record per combination."""
+    """Time every backend on every (size, image). Returns one record per combination.
+
+    ``torch_threads``: with the ``cpu`` backend, torch's own ops on this many threads (see ``torch_ops_on_threads``)."""
     device = torch.device(device)
     torch.set_flush_denormal(True)  # as training runs (Trainer): denormal arithmetic is many times slower
     records = []
     for n in sizes:
         scene = benchmark_scene(n, device=device)
+        for t in (scene.means, scene.quats, scene.scales, scene.opacities, scene.sh):
+            t.requires_grad_(True)  # leaves, as a model's parameters (each step clears their gradients first)
         for width, height in images:
             cam = benchmark_camera(width, height)
             target = torch.rand(height, width, 3, generator=torch.Generator().manual_seed(0)).to(device)
@@ -134,13 +143,15 @@ def run_raster_benchmark(
             for name in backends:
                 rasterizer = registry("rasterizer").get(name)()
                 _time_step(rasterizer, scene, cam, target, backward=True)  # warm-up (and extension load)
-                fwd = [_time_step(rasterizer, scene, cam, target, backward=False)[0] for _ in range(repeats)]
-                fb = [_time_step(rasterizer, scene, cam, target, backward=True) for _ in range(repeats)]
-                # memory in steps of their own: on CPU a thread samples the resident set every 0.5 ms, which
-                # would take CPU time and the GIL from the timed steps
-                with PeakMemory(device) as mem:
-                    for _ in range(min(repeats, 3)):
-                        _time_step(rasterizer, scene, cam, target, backward=True)
+                with thread_split(name, torch_threads):
+                    ops_threads = torch.get_num_threads()
+                    fwd = [_time_step(rasterizer, scene, cam, target, backward=False)[0] for _ in range(repeats)]
+                    fb = [_time_step(rasterizer, scene, cam, target, backward=True) for _ in range(repeats)]
+                    # memory in steps of their own: on CPU a thread samples the resident set every 0.5 ms, which
+                    # would take CPU time and the GIL from the timed steps
+                    with PeakMemory(device) as mem:
+                        for _ in range(min(repeats, 3)):
+                            _time_step(rasterizer, scene, cam, target, backward=True)
                 records.append(
                     RasterRecord(
                         backend=name,
@@ -152,6 +163,7 @@ def run_raster_benchmark(
                         peak_mem_mb=mem.peak_mb,
                         num_intersections=fb[0][1],
                         floor_ms=floor_ms,
+                        torch_threads=ops_threads,
                     )
                 )
                 if progress is not None:

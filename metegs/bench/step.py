@@ -13,12 +13,14 @@ import time
 from dataclasses import dataclass, replace
 
 import numpy as np
+import torch
 
 from metegs.bench.memory import PeakMemory, rss_mb
 from metegs.engine.config import TrainConfig
 from metegs.engine.optim import make_optimizers
 from metegs.engine.trainer import Trainer
 from metegs.gaussians.model import GaussianModel
+from metegs.render.cpu_backend import thread_split
 
 
 @dataclass
@@ -36,6 +38,8 @@ class StepRecord:
     """Resident memory of the process before the steps (torch, the dataset, the model)."""
     step_peak_mb: float
     """Peak memory of the steps above ``rss_before_mb``."""
+    torch_threads: int
+    """Threads of torch's own ops (loss, Adam, autograd) during the steps."""
 
 
 def resampled_model(points: np.ndarray, colors: np.ndarray, n: int, sh_degree: int, seed: int) -> GaussianModel:
@@ -66,26 +70,32 @@ def run_step_benchmark(
     records = []
     for backend in backends:
         trainer = Trainer(replace(config, backend=backend, progress=False))
-        scene = trainer.scene
-        views = trainer.dataset.train_indices
-        for n in sizes:
-            trainer.model = resampled_model(scene.points, scene.point_colors, n, trainer.model.max_sh_degree, 0)
-            trainer.optimizers = make_optimizers(trainer.model.params, config.optim, trainer.extent)
-            times = []
-            for i in range(repeats + 1):
-                t0 = time.perf_counter()
+        with thread_split(trainer.config.backend, config.torch_threads):
+            records += _time_sizes(trainer, sizes, repeats, progress)
+    return records
+
+
+def _time_sizes(trainer: Trainer, sizes: list[int], repeats: int, progress) -> list[StepRecord]:
+    """Records of ``trainer``'s steps at each model size."""
+    config, scene, views, records = trainer.config, trainer.scene, trainer.dataset.train_indices, []
+    for n in sizes:
+        trainer.model = resampled_model(scene.points, scene.point_colors, n, trainer.model.max_sh_degree, 0)
+        trainer.optimizers = make_optimizers(trainer.model.params, config.optim, trainer.extent)
+        times = []
+        for i in range(repeats + 1):
+            t0 = time.perf_counter()
+            _train_step(trainer, views[i % len(views)])
+            if i > 0:  # the first step warms up
+                times.append(time.perf_counter() - t0)
+        # memory in steps of their own: on CPU a thread samples the resident set every 0.5 ms, which would
+        # take CPU time and the GIL from the timed steps
+        before = rss_mb()
+        with PeakMemory(trainer.device) as mem:
+            for i in range(min(repeats, 3)):
                 _train_step(trainer, views[i % len(views)])
-                if i > 0:  # the first step warms up
-                    times.append(time.perf_counter() - t0)
-            # memory in steps of their own: on CPU a thread samples the resident set every 0.5 ms, which would
-            # take CPU time and the GIL from the timed steps
-            before = rss_mb()
-            with PeakMemory(trainer.device) as mem:
-                for i in range(min(repeats, 3)):
-                    _train_step(trainer, views[i % len(views)])
-            ms = statistics.median(times) * 1e3
-            W, H = int(trainer.dataset.cameras.width[0]), int(trainer.dataset.cameras.height[0])
-            records.append(StepRecord(backend, n, W, H, ms, 1e3 / ms, before, mem.peak_mb))
-            if progress is not None:
-                progress(records[-1])
+        ms = statistics.median(times) * 1e3
+        W, H = int(trainer.dataset.cameras.width[0]), int(trainer.dataset.cameras.height[0])
+        records.append(StepRecord(config.backend, n, W, H, ms, 1e3 / ms, before, mem.peak_mb, torch.get_num_threads()))
+        if progress is not None:
+            progress(records[-1])
     return records

@@ -36,6 +36,9 @@ class _BenchArgs:
     """Backends to time (default: every registered backend usable on the device; `torch` first)."""
     threads: int | None = None
     """torch intra-op threads (default: torch's)."""
+    torch_threads: int = 0
+    """With the `cpu` backend: threads of torch's own ops (loss, Adam, autograd) while its kernels keep `--threads`
+    (0: the same; as `metegs-train --torch-threads`)."""
     device: str = "cpu"
     """Torch device."""
     json: bool = False
@@ -217,6 +220,7 @@ def raster(args: RasterArgs) -> list[dict]:
             backends,
             args.repeats,
             device,
+            torch_threads=args.torch_threads,
             progress=lambda r: status.update(f"done {r.backend} {r.num_gaussians} @ {r.width}x{r.height}"),
         )
     ref = {(r.num_gaussians, r.width, r.height): r.forward_backward_ms for r in records if r.backend == "torch"}
@@ -248,7 +252,7 @@ def step(args: StepArgs) -> list[dict]:
     from metegs.engine.config import TrainConfig
 
     backends = args.setup()
-    config = TrainConfig(method="3dgs", device=args.device, threads=args.threads or 0)
+    config = TrainConfig(method="3dgs", device=args.device, threads=args.threads or 0, torch_threads=args.torch_threads)
     synth = config.dataset.synthetic
     if args.width or args.height:
         synth = replace(synth, width=args.width or synth.width, height=args.height or synth.height)

@@ -63,6 +63,10 @@ class TrainConfig(InstantiateConfig):
     """Torch device: auto (cuda if available, else cpu), cpu, cuda, cuda:1, ..."""
     threads: int = 0
     """CPU threads for torch (0: torch's default)."""
+    torch_threads: int = 0
+    """With the `cpu` backend: threads of torch's own ops (losses, Adam, autograd) while the rasteriser's kernels keep
+    `threads` (0: the same). 1 stops torch's OpenMP workers from spinning on the kernels' cores: faster when the
+    rasteriser dominates a step (3dgs), slower when torch's networks do (metegs-full)."""
     load_checkpoint: Path | None = None
     """Resume from this checkpoint file (.ckpt) of an earlier run."""
     degrade: Literal["off", "auto", "rain", "fog", "rain+fog"] = "off"

@@ -28,6 +28,7 @@ from metegs.errors import ConfigError
 from metegs.gaussians.model import GaussianModel
 from metegs.meteo import Theta
 from metegs.render import RenderSettings, make_rasterizer
+from metegs.render.cpu_backend import thread_split
 from metegs.render.select import resolve_backend
 
 
@@ -298,7 +299,10 @@ class Trainer:
         eval_every = int(round(c.eval_every * c.max_steps)) if c.eval_every > 0 else 0
         order = self._view_order()
         last_good = self._latest_checkpoint() or self.save()
-        with TrainProgress(c.max_steps, start=self.step, enabled=c.progress, console=self.console) as progress:
+        with (
+            TrainProgress(c.max_steps, start=self.step, enabled=c.progress, console=self.console) as progress,
+            thread_split(c.backend, c.torch_threads),
+        ):
             while self.step < c.max_steps:
                 t0 = time.perf_counter()
                 stats = self.train_step(next(order))

@@ -13,12 +13,14 @@ When it cannot be built, `CpuRasterizer.available` is False (with one warning sa
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import os
 import platform
 import subprocess
 import sys
 import threading
+from collections.abc import Iterator
 from pathlib import Path
 
 import torch
@@ -109,6 +111,33 @@ def set_kernel_threads(n: int) -> None:
     With ``torch.set_num_threads(1)`` on the same thread this runs torch's own ops serially while the kernels
     keep ``n`` threads on their pool (``csrc/pool.h``), which does not wait for a descheduled thread."""
     load_extension().set_num_threads(int(n))
+
+
+@contextlib.contextmanager
+def torch_ops_on_threads(n: int) -> Iterator[None]:
+    """Within the block, on this thread: torch's own ops (losses, Adam, autograd) on ``n`` threads while the ``cpu``
+    kernels keep torch's present count; nothing changes when ``n`` is 0 or not below that count.
+
+    torch's OpenMP workers spin for milliseconds after every parallel op, on the cores the kernels' pool needs;
+    with ``n = 1`` there are none (``docs/benchmark.md`` has the figures)."""
+    total = torch.get_num_threads()
+    if n <= 0 or n >= total:
+        yield
+        return
+    set_kernel_threads(total)
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(total)
+        set_kernel_threads(0)
+
+
+def thread_split(backend: str, torch_threads: int):
+    """``torch_ops_on_threads(torch_threads)`` when ``backend`` is ``cpu`` and ``torch_threads`` > 0, else no change."""
+    if backend != "cpu" or torch_threads <= 0:
+        return contextlib.nullcontext()
+    return torch_ops_on_threads(torch_threads)
 
 
 def _build():

@@ -85,7 +85,7 @@ class ViewerConfig:
     torch_threads_while_training: int = 1
     """While training runs with the `cpu` backend, torch's own ops (losses, Adam, autograd) use this many threads and
     the rasteriser's kernels keep the run's (their pool does not wait for a thread the browser holds up); 0: as
-    configured."""
+    configured. The run's own `torch_threads`, when set, takes precedence."""
     jpeg_quality: int = 90
     """JPEG quality of the frames sent to the browser."""
     thumbnail_px: int = 96
@@ -151,9 +151,8 @@ class Viewer:
         self.snapshot = Snapshot.of(trainer.model, trainer.step)
         self._snapshot_time = time.perf_counter()
         self._threads = torch.get_num_threads()
-        self._kernel_threads_set = False
-        if live:
-            self._share_cores_while_training()
+        if live and not trainer.config.torch_threads:  # applied by trainer.train() on the training thread
+            trainer.config = replace(trainer.config, torch_threads=self.config.torch_threads_while_training)
         self._lock = threading.RLock()
         self._wake = threading.Event()
         self._stop = threading.Event()
@@ -574,28 +573,8 @@ class Viewer:
             self.step_btn.disabled = False
         self._wake.set()
 
-    def _share_cores_while_training(self) -> None:
-        """torch's ops on fewer threads, the cpu kernels on the run's (call on the training thread)."""
-        n = self.config.torch_threads_while_training
-        if n <= 0 or n >= self._threads or self.trainer.config.backend != "cpu":
-            return
-        from metegs.render.cpu_backend import set_kernel_threads
-
-        set_kernel_threads(self._threads)
-        torch.set_num_threads(n)
-        self._kernel_threads_set = True
-
-    def _restore_threads(self) -> None:
-        if self._kernel_threads_set:
-            from metegs.render.cpu_backend import set_kernel_threads
-
-            torch.set_num_threads(self._threads)
-            set_kernel_threads(0)
-            self._kernel_threads_set = False
-
     def training_finished(self) -> None:
-        """Training is over (call on the training thread): take the final scene, stop throttling, restore threads."""
-        self._restore_threads()
+        """Training is over (call on the training thread): take the final scene, stop throttling."""
         if self.control is not None:
             self.control.finished()
         with self._lock:

@@ -35,3 +35,22 @@ def test_step_records(tmp_path):
     rows = step(StepArgs(sizes=[500], width=40, height=30, repeats=1, backends=["torch"], output=tmp_path / "s.json"))
     assert len(rows) == 1 and rows[0]["iterations_per_s"] > 0 and rows[0]["width"] == 40
     assert json.loads((tmp_path / "s.json").read_text()) == rows
+
+
+def test_raster_torch_threads_apply_to_the_cpu_backend_only(tmp_path):
+    """`--torch-threads 1`: the cpu backend is timed with torch's ops on one thread; torch keeps the run's count."""
+    import torch
+
+    from metegs.render.select import usable_backends
+
+    if "cpu" not in usable_backends("cpu"):
+        import pytest
+
+        pytest.skip("the cpu rasteriser extension cannot be built here")
+    previous = torch.get_num_threads()
+    try:
+        rows = raster(RasterArgs(sizes=[300], images=["48x32"], repeats=1, backends=["torch", "cpu"], threads=2,
+                                 torch_threads=1))
+    finally:
+        torch.set_num_threads(previous)
+    assert {r["backend"]: r["torch_threads"] for r in rows} == {"torch": 2, "cpu": 1}

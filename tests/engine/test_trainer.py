@@ -136,3 +136,25 @@ def test_masks_replace_masked_out_pixels_by_the_background(tmp_path):
 
 def img_w(ds) -> int:
     return int(ds.cameras.width[0])
+
+
+def test_torch_threads_run_torchs_ops_serially_while_the_cpu_kernels_keep_the_runs_threads(tmp_path):
+    """`torch_threads: 1` with the cpu backend: every step runs torch's ops on one thread and the kernels on the
+    run's two; the counts are restored when training ends."""
+    from metegs.render.cpu_backend import CpuExtensionError, load_extension
+
+    try:
+        ext = load_extension()
+    except CpuExtensionError as exc:
+        pytest.skip(f"the cpu rasteriser extension cannot be built here: {exc}")
+    previous = torch.get_num_threads()
+    try:
+        config = replace(tiny_config(tmp_path), backend="cpu", threads=2, torch_threads=1, max_steps=4)
+        trainer = config.setup()
+        seen = []
+        trainer.step_hooks.append(lambda t, stats: seen.append((torch.get_num_threads(), ext.get_num_threads())))
+        trainer.train()
+        assert seen == [(1, 2)] * 4
+        assert (torch.get_num_threads(), ext.get_num_threads()) == (2, 2)
+    finally:
+        torch.set_num_threads(previous)

@@ -555,7 +555,11 @@ def test_kernel_threads_run_under_the_callers_denormal_mode():
     n = len(m2)
     conics = torch.tensor([[0.01, 0.0, 0.01]]).repeat(n, 1)
     opac, depths = torch.full((n,), 0.5), torch.linspace(1.0, 2.0, n)
+    # An earlier test (a training run) may have left flush-to-zero on here, and on torch's OpenMP workers (which
+    # inherit it when created), where torch's own comparisons would read denormals as 0: values are checked by bits.
+    torch.set_flush_denormal(False)
     colors = torch.full((n, 3), 1e-38)  # below the smallest normal float32 (1.18e-38)
+    assert bool((colors.view(torch.int32) == torch.tensor(1e-38).view(torch.int32)).all())
     ids, offsets, rows = ext.bin_tiles(m2, conics, opac, torch.full((n, 2), 40.0), depths, W, H, True)
     previous = torch.get_num_threads()
     try:
@@ -563,10 +567,11 @@ def test_kernel_threads_run_under_the_callers_denormal_mode():
         for flush in (False, True, False, True):
             torch.set_flush_denormal(flush)
             color = ext.forward(m2, conics, opac, colors, depths, ids, offsets, 16, 16, W, H, rows)[0]
+            bits = color.view(torch.int32)  # positive floats: nonzero bits iff the value is not 0
             if flush:
-                assert torch.count_nonzero(color) == 0
+                assert torch.count_nonzero(bits) == 0
             else:
-                assert bool((color > 0).all())
+                assert bool((bits > 0).all())
     finally:
         torch.set_flush_denormal(False)
         torch.set_num_threads(previous)
@@ -603,3 +608,28 @@ def test_compiled_finish_matches_finish_render_and_finite_differences():
     (d_ref / a_ref.clamp_min(1e-10)).sum().backward()
     torch.testing.assert_close(a.grad, a_ref.grad)
     torch.testing.assert_close(d.grad, d_ref.grad)
+
+
+def test_torch_ops_on_threads_splits_this_threads_counts_and_restores_them():
+    """Inside torch_ops_on_threads(n): torch's ops on n threads, the kernels on the count before; afterwards (also
+    after an error) both as before. n = 0, n >= the count, or another backend (thread_split): no change."""
+    from metegs.render.cpu_backend import thread_split, torch_ops_on_threads
+
+    ext = cpu_backend.load_extension()
+    previous = torch.get_num_threads()
+    try:
+        torch.set_num_threads(3)
+        with torch_ops_on_threads(1):
+            assert (torch.get_num_threads(), ext.get_num_threads()) == (1, 3)
+        assert (torch.get_num_threads(), ext.get_num_threads()) == (3, 3)
+        with pytest.raises(ValueError), torch_ops_on_threads(2):
+            assert (torch.get_num_threads(), ext.get_num_threads()) == (2, 3)
+            raise ValueError
+        assert (torch.get_num_threads(), ext.get_num_threads()) == (3, 3)
+        for ctx in (torch_ops_on_threads(0), torch_ops_on_threads(3), thread_split("torch", 1), thread_split("cpu", 0)):
+            with ctx:
+                assert (torch.get_num_threads(), ext.get_num_threads()) == (3, 3)
+        with thread_split("cpu", 1):
+            assert (torch.get_num_threads(), ext.get_num_threads()) == (1, 3)
+    finally:
+        torch.set_num_threads(previous)
