@@ -18,6 +18,7 @@ import torch
 
 from metegs.bench.memory import PeakMemory
 from metegs.cameras import Cameras
+from metegs.engine.allocator import keep_freed_memory
 from metegs.gaussians.model import GaussianSet
 from metegs.registry import registry
 from metegs.render.base import RenderSettings
@@ -131,6 +132,8 @@ def run_raster_benchmark(
     ``torch_threads``: with the ``cpu`` backend, torch's own ops on this many threads (see ``torch_ops_on_threads``)."""
     device = torch.device(device)
     torch.set_flush_denormal(True)  # as training runs (Trainer): denormal arithmetic is many times slower
+    if device.type == "cpu":
+        keep_freed_memory()  # as training runs
     records = []
     for n in sizes:
         scene = benchmark_scene(n, device=device)

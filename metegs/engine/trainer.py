@@ -19,6 +19,7 @@ from metegs.config import atomic_write_text, save_yaml
 from metegs.data.dataset import Dataset
 from metegs.data.parsers.base import parse_scene
 from metegs.data.scene import SceneData
+from metegs.engine.allocator import keep_freed_memory
 from metegs.engine.checkpoint import load_checkpoint, save_checkpoint
 from metegs.engine.config import TrainConfig
 from metegs.engine.init import random_points_in_view_overlap, scene_extent
@@ -69,6 +70,8 @@ class Trainer:
         if config.threads > 0:
             torch.set_num_threads(config.threads)
         torch.set_flush_denormal(True)  # tiny transmittances/gradients otherwise slow CPU arithmetic ~30x
+        if self.device.type == "cpu":
+            keep_freed_memory()  # no page faults for the memory each step frees and allocates again
         self.console = console
         seed_everything(config.seed)
         self.decisions: dict[str, str] = {}
