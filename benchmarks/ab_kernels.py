@@ -23,6 +23,7 @@ import torch
 from torch.utils import cpp_extension
 
 from metegs.bench.raster import benchmark_camera, benchmark_scene
+from metegs.engine.allocator import keep_freed_memory
 from metegs.render import cpu_backend
 
 REPO = Path(__file__).resolve().parents[1]
@@ -88,6 +89,7 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     torch.set_flush_denormal(True)  # as training runs (Trainer)
+    keep_freed_memory()  # as training runs
     a, b = build_revision(args.rev, args.build_dir), cpu_backend.load_extension()
     print(f"A = {args.rev}, B = working tree; {args.threads} threads, median of {args.repeats}")
     for n, width, height in SIZES:
