@@ -2,6 +2,9 @@
 
 import json
 
+import pytest
+import torch
+
 from metegs.bench.raster import benchmark_camera, benchmark_scene, plain_pairs
 from metegs.cli.bench import RasterArgs, StepArgs, raster, step
 
@@ -39,13 +42,9 @@ def test_step_records(tmp_path):
 
 def test_raster_torch_threads_apply_to_the_cpu_backend_only(tmp_path):
     """`--torch-threads 1`: the cpu backend is timed with torch's ops on one thread; torch keeps the run's count."""
-    import torch
-
     from metegs.render.select import usable_backends
 
     if "cpu" not in usable_backends("cpu"):
-        import pytest
-
         pytest.skip("the cpu rasteriser extension cannot be built here")
     previous = torch.get_num_threads()
     try:
