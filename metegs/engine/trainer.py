@@ -298,6 +298,9 @@ class Trainer:
         c = self.config
         self.run_dir.mkdir(parents=True, exist_ok=True)
         save_yaml(c, self.run_dir / "config.yml", header={"metegs_version": __version__})
+        threads = torch.get_num_threads()
+        if c.backend == "cpu" and 0 < c.torch_threads < threads:
+            self.decide("threads", f"torch's own ops on {c.torch_threads}, the cpu kernels on {threads} (torch_threads)")
         self.save_decisions()
         eval_every = int(round(c.eval_every * c.max_steps)) if c.eval_every > 0 else 0
         order = self._view_order()

@@ -156,5 +156,7 @@ def test_torch_threads_run_torchs_ops_serially_while_the_cpu_kernels_keep_the_ru
         trainer.train()
         assert seen == [(1, 2)] * 4
         assert (torch.get_num_threads(), ext.get_num_threads()) == (2, 2)
+        decisions = json.loads((trainer.run_dir / "decisions.json").read_text())["decisions"]
+        assert decisions["threads"] == "torch's own ops on 1, the cpu kernels on 2 (torch_threads)"
     finally:
         torch.set_num_threads(previous)
