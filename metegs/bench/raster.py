@@ -129,7 +129,7 @@ def run_raster_benchmark(
 ) -> list[RasterRecord]:
     """Time every backend on every (size, image). Returns one record per combination.
 
-    ``torch_threads``: with the ``cpu`` backend, torch's own ops on this many threads (see ``torch_ops_on_threads``)."""
+    ``torch_threads``: with the ``cpu`` backend, torch's own ops on this many threads (see ``thread_split``)."""
     device = torch.device(device)
     torch.set_flush_denormal(True)  # as training runs (Trainer): denormal arithmetic is many times slower
     if device.type == "cpu":

@@ -29,7 +29,7 @@ from metegs.errors import ConfigError
 from metegs.gaussians.model import GaussianModel
 from metegs.meteo import Theta
 from metegs.render import RenderSettings, make_rasterizer
-from metegs.render.cpu_backend import thread_split
+from metegs.render.cpu_backend import thread_split, thread_split_counts
 from metegs.render.select import resolve_backend
 
 
@@ -298,9 +298,9 @@ class Trainer:
         c = self.config
         self.run_dir.mkdir(parents=True, exist_ok=True)
         save_yaml(c, self.run_dir / "config.yml", header={"metegs_version": __version__})
-        threads = torch.get_num_threads()
-        if c.backend == "cpu" and 0 < c.torch_threads < threads:
-            self.decide("threads", f"torch's own ops on {c.torch_threads}, the cpu kernels on {threads} (torch_threads)")
+        split = thread_split_counts(c.backend, c.torch_threads)
+        if split is not None:
+            self.decide("threads", f"torch's own ops on {split[0]}, the cpu kernels on {split[1]} (torch_threads)")
         self.save_decisions()
         eval_every = int(round(c.eval_every * c.max_steps)) if c.eval_every > 0 else 0
         order = self._view_order()

@@ -113,31 +113,32 @@ def set_kernel_threads(n: int) -> None:
     load_extension().set_num_threads(int(n))
 
 
+def thread_split_counts(backend: str, torch_threads: int) -> tuple[int, int] | None:
+    """(threads of torch's own ops, threads of the ``cpu`` kernels) when ``torch_threads`` applies on this thread: the
+    ``cpu`` backend and 0 < ``torch_threads`` < torch's present count; else None."""
+    total = torch.get_num_threads()
+    return (torch_threads, total) if backend == "cpu" and 0 < torch_threads < total else None
+
+
 @contextlib.contextmanager
-def torch_ops_on_threads(n: int) -> Iterator[None]:
-    """Within the block, on this thread: torch's own ops (losses, Adam, autograd) on ``n`` threads while the ``cpu``
-    kernels keep torch's present count; nothing changes when ``n`` is 0 or not below that count.
+def thread_split(backend: str, torch_threads: int) -> Iterator[None]:
+    """Within the block, on this thread: torch's own ops (losses, Adam, autograd) on ``torch_threads`` threads while
+    the ``cpu`` kernels keep torch's present count, where `thread_split_counts` says it applies; else no change.
 
     torch's OpenMP workers spin for milliseconds after every parallel op, on the cores the kernels' pool needs;
-    with ``n = 1`` there are none (``docs/benchmark.md`` has the figures)."""
-    total = torch.get_num_threads()
-    if n <= 0 or n >= total:
+    with ``torch_threads = 1`` there are none (``docs/benchmark.md`` has the figures)."""
+    counts = thread_split_counts(backend, torch_threads)
+    if counts is None:
         yield
         return
-    set_kernel_threads(total)
-    torch.set_num_threads(n)
+    ops, kernels = counts
+    set_kernel_threads(kernels)
+    torch.set_num_threads(ops)
     try:
         yield
     finally:
-        torch.set_num_threads(total)
+        torch.set_num_threads(kernels)
         set_kernel_threads(0)
-
-
-def thread_split(backend: str, torch_threads: int):
-    """``torch_ops_on_threads(torch_threads)`` when ``backend`` is ``cpu`` and ``torch_threads`` > 0, else no change."""
-    if backend != "cpu" or torch_threads <= 0:
-        return contextlib.nullcontext()
-    return torch_ops_on_threads(torch_threads)
 
 
 def _build():

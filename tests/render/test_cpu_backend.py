@@ -610,26 +610,26 @@ def test_compiled_finish_matches_finish_render_and_finite_differences():
     torch.testing.assert_close(d.grad, d_ref.grad)
 
 
-def test_torch_ops_on_threads_splits_this_threads_counts_and_restores_them():
-    """Inside torch_ops_on_threads(n): torch's ops on n threads, the kernels on the count before; afterwards (also
-    after an error) both as before. n = 0, n >= the count, or another backend (thread_split): no change."""
-    from metegs.render.cpu_backend import thread_split, torch_ops_on_threads
+def test_thread_split_sets_this_threads_counts_and_restores_them():
+    """Inside thread_split("cpu", n): torch's ops on n threads, the kernels on the count before; afterwards (also
+    after an error) both as before. n = 0, n >= the count, or another backend: no change."""
+    from metegs.render.cpu_backend import thread_split, thread_split_counts
 
     ext = cpu_backend.load_extension()
     previous = torch.get_num_threads()
     try:
         torch.set_num_threads(3)
-        with torch_ops_on_threads(1):
+        assert thread_split_counts("cpu", 1) == (1, 3)
+        with thread_split("cpu", 1):
             assert (torch.get_num_threads(), ext.get_num_threads()) == (1, 3)
         assert (torch.get_num_threads(), ext.get_num_threads()) == (3, 3)
-        with pytest.raises(ValueError), torch_ops_on_threads(2):
+        with pytest.raises(ValueError), thread_split("cpu", 2):
             assert (torch.get_num_threads(), ext.get_num_threads()) == (2, 3)
             raise ValueError
         assert (torch.get_num_threads(), ext.get_num_threads()) == (3, 3)
-        for ctx in (torch_ops_on_threads(0), torch_ops_on_threads(3), thread_split("torch", 1), thread_split("cpu", 0)):
-            with ctx:
+        for backend, n in (("cpu", 0), ("cpu", 3), ("torch", 1)):
+            assert thread_split_counts(backend, n) is None
+            with thread_split(backend, n):
                 assert (torch.get_num_threads(), ext.get_num_threads()) == (3, 3)
-        with thread_split("cpu", 1):
-            assert (torch.get_num_threads(), ext.get_num_threads()) == (1, 3)
     finally:
         torch.set_num_threads(previous)
