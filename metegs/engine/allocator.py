@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
 import functools
 
 M_TRIM_THRESHOLD = -1
@@ -22,11 +21,10 @@ def keep_freed_memory() -> bool:
     it frees more than twice that; a training step frees and reallocates its images, tile lists and gradients, and
     each new page then costs a page fault (300-500 per step at 20k Gaussians, 300x200: about 1 ms on a virtual
     machine). Freed memory stays with the process up to ``KEEP_FREE_MB``."""
-    name = ctypes.util.find_library("c")
     try:
-        libc = ctypes.CDLL(name)
+        libc = ctypes.CDLL(None)  # the process's own symbols: the C library it runs on
         mallopt, _ = libc.mallopt, libc.gnu_get_libc_version  # glibc's; musl and macOS have no mallopt
-    except (OSError, AttributeError, TypeError):
+    except (OSError, AttributeError):
         return False
     mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
     return bool(mallopt(M_TRIM_THRESHOLD, KEEP_FREE_MB << 20)) and bool(mallopt(M_MMAP_THRESHOLD, MMAP_FROM_MB << 20))
