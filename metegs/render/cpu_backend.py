@@ -17,6 +17,7 @@ import contextlib
 import hashlib
 import os
 import platform
+import re
 import subprocess
 import sys
 import threading
@@ -46,8 +47,9 @@ EXTENSION_NAME = f"metegs_cpu_composite_{_TORCH_TAG}"
 # different machines does not load a binary built for another CPU. -mprefer-vector-width=512 lets GCC use
 # zmm registers where the CPU has AVX-512 (ignored elsewhere). -ffp-contract=off keeps forward and backward
 # alphas bit-identical (see composite.cpp); -fno-trapping-math lets GCC if-convert (vectorise) the loops of
-# the other kernels (no FP exceptions are used). The kernels run on metegs' own pool (csrc/pool.h), not on
-# OpenMP regions, whose closing barriers wait for any descheduled thread (see pool.h).
+# the other kernels (no FP exceptions are used). The kernels run on metegs' own pool (csrc/pool.h), or, called
+# from the main thread with torch's thread count, on torch's own OpenMP team: hence -fopenmp where torch runs on
+# GNU OpenMP (`openmp_flags`).
 CFLAGS = [
     "-O3", "-march=native", "-mprefer-vector-width=512", "-ffp-contract=off", "-fno-trapping-math",
 ]
@@ -83,6 +85,20 @@ def build_directory() -> Path:
         return Path(override).expanduser()
     cache = Path(os.environ.get("XDG_CACHE_HOME") or "~/.cache").expanduser()
     return cache / "metegs" / "torch_extensions" / _TORCH_TAG / _cpu_tag()
+
+
+def openmp_flags() -> list[str]:
+    """["-fopenmp"] where torch runs its ops on GNU OpenMP loaded as ``libgomp.so.1`` (Linux), so that the extension's
+    OpenMP regions resolve to torch's runtime and team; else [] (the kernels then always use metegs' pool)."""
+    if sys.platform != "linux" or "parallel backend: OpenMP" not in torch.__config__.parallel_info():
+        return []
+    try:
+        with open("/proc/self/maps", encoding="utf-8", errors="replace") as f:
+            mapped = {Path(line.split()[-1]).name for line in f if "/" in line}
+        runtimes = {name for name in mapped if re.match(r"lib(g|i)?omp\d*[.-]", name)}
+    except OSError:
+        return []
+    return ["-fopenmp"] if runtimes == {"libgomp.so.1"} else []
 
 
 def _tail(text: str, lines: int = 25) -> str:
@@ -153,12 +169,14 @@ def _build():
         raise CpuExtensionError("the `ninja` build tool is required (pip install ninja)") from exc
     build_dir = build_directory()
     build_dir.mkdir(parents=True, exist_ok=True)
+    openmp = openmp_flags()
+    cflags = CFLAGS + openmp
     built, ninja_file = build_dir / f"{EXTENSION_NAME}.so", build_dir / "build.ninja"
     stale = (
         not built.exists()
         or built.stat().st_mtime < max(f.stat().st_mtime for f in SOURCES + HEADERS)
         or not ninja_file.exists()
-        or " ".join(CFLAGS) not in ninja_file.read_text(errors="replace")
+        or " ".join(cflags) not in ninja_file.read_text(errors="replace")
     )
     if stale and not _announced.is_set():
         _announced.set()
@@ -168,8 +186,8 @@ def _build():
         name=EXTENSION_NAME,
         sources=[str(f) for f in SOURCES],
         extra_include_paths=[str(CSRC)],
-        extra_ldflags=["-pthread"],
-        extra_cflags=CFLAGS,
+        extra_ldflags=["-pthread", *openmp],
+        extra_cflags=cflags,
         build_directory=str(build_dir),
         verbose=False,
     )

@@ -545,6 +545,53 @@ def test_kernel_threads_can_differ_from_torchs_on_the_calling_thread():
     assert all(torch.equal(a, b) for a, b in zip(serial, split))
 
 
+_TEAM_SCRIPT = """
+import os, threading, torch
+from metegs.render import cpu_backend
+from metegs.render.cpu_backend import CpuRasterizer
+from metegs.testing import camera, random_scene
+torch.set_num_threads(2)
+ext = cpu_backend.load_extension()
+g, cam = random_scene(3000, seed=4, sh_degree=1), camera(96, 64, f=70.0)
+g.means.requires_grad_(True)
+def render():
+    g.means.grad = None
+    out = CpuRasterizer().render(g, cam)
+    (out.rgb.sum() + out.depth.sum()).backward()
+    return [out.rgb, out.depth, g.means.grad]
+threads = lambda: len(os.listdir("/proc/self/task"))
+torch.rand(1_000_000).exp_()  # torch's OpenMP team exists
+before, on_main = threads(), render()
+after_main, team_here = threads(), ext.uses_openmp_team()
+box = {}
+def other():
+    box["team"] = ext.uses_openmp_team()
+    box["run"] = render()
+t = threading.Thread(target=other)
+t.start(); t.join()
+cpu_backend.set_kernel_threads(2)
+team_with_override = ext.uses_openmp_team()
+print(team_here, box["team"], team_with_override, before, after_main, threads(),
+      all(torch.equal(a, b) for a, b in zip(on_main, box["run"], strict=True)))
+"""
+
+
+@pytest.mark.skipif(not cpu_backend.openmp_flags(), reason="torch does not run on GNU OpenMP here")
+def test_kernels_called_from_the_main_thread_run_on_torchs_openmp_team():
+    """From the main thread with torch's count, the kernels' chunks run on torch's OpenMP team (no pool worker is
+    started); another thread, or a thread split, uses metegs' pool. Both give the same bits."""
+    import subprocess
+    import sys
+
+    res = subprocess.run([sys.executable, "-c", _TEAM_SCRIPT], capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr[-3000:]
+    team_main, team_other, team_split, before, after_main, after_other, same = res.stdout.split()[-7:]
+    assert (team_main, team_other, team_split) == ("True", "False", "False")
+    assert int(after_main) == int(before), "a render on the main thread started threads of its own"
+    assert int(after_other) > int(before), "the render on another thread did not use the pool's worker"
+    assert same == "True"
+
+
 def test_kernel_threads_run_under_the_callers_denormal_mode():
     """Every chunk of a kernel runs with the calling thread's flush-to-zero / denormals-are-zero mode, also on pool
     workers started under another mode (the trainer sets torch.set_flush_denormal(True) on its own thread)."""

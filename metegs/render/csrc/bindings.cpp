@@ -23,4 +23,6 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("set_num_threads", [](int64_t n) { metegs::thread_override() = std::max<int64_t>(n, 0); },
         "threads of the metegs kernels called from this thread (0: torch's intra-op count)", py::arg("n"));
   m.def("get_num_threads", &metegs::num_threads, "threads of the metegs kernels called from this thread");
+  m.def("uses_openmp_team", &metegs::uses_openmp_team,
+        "whether the kernels called from this thread run on torch's OpenMP team (else on metegs' pool)");
 }
