@@ -65,8 +65,8 @@ class TrainConfig(InstantiateConfig):
     """CPU threads for torch (0: torch's default)."""
     torch_threads: int = 0
     """With the `cpu` backend: threads of torch's own ops (losses, Adam, autograd) while the rasteriser's kernels keep
-    `threads` (0: the same). 1 stops torch's OpenMP workers from spinning on the kernels' cores: faster when the
-    rasteriser dominates a step (3dgs), slower when torch's networks do (metegs-full)."""
+    `threads` on metegs' pool, which never waits for a descheduled thread (0: the same; the kernels then share torch's
+    OpenMP team, faster alone). The live viewer sets 1 while a browser shares the cores."""
     load_checkpoint: Path | None = None
     """Resume from this checkpoint file (.ckpt) of an earlier run."""
     degrade: Literal["off", "auto", "rain", "fog", "rain+fog"] = "off"

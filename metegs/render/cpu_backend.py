@@ -141,8 +141,9 @@ def thread_split(backend: str, torch_threads: int) -> Iterator[None]:
     """Within the block, on this thread: torch's own ops (losses, Adam, autograd) on ``torch_threads`` threads while
     the ``cpu`` kernels keep torch's present count, where `thread_split_counts` says it applies; else no change.
 
-    torch's OpenMP workers spin for milliseconds after every parallel op, on the cores the kernels' pool needs;
-    with ``torch_threads = 1`` there are none (``docs/benchmark.md`` has the figures)."""
+    The kernels then run on metegs' pool, which never waits for a descheduled thread (another process, a browser,
+    taking part of a core); without a split, those called from the main thread share torch's OpenMP team, which is
+    faster on an otherwise idle machine (``csrc/pool.h``, ``docs/benchmark.md``)."""
     counts = thread_split_counts(backend, torch_threads)
     if counts is None:
         yield
