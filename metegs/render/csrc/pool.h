@@ -15,9 +15,10 @@
 // and a job comes from the main thread with torch's thread count, the same chunk claims run on torch's OpenMP
 // team instead of the pool's workers. After each of torch's parallel ops its workers spin for milliseconds
 // (GOMP_SPINCOUNT) waiting for the next one; a pool worker then shares a core with a spinning thread, while a
-// team worker picks the job up at once. That made the raster step 1.3-1.5x and training 10-14 % faster
-// (docs/benchmark.md). The region's closing barrier does wait for a descheduled thread, which is what the
-// pool avoids: a thread split (`set_num_threads`, the live viewer's) and other threads keep the pool.
+// team worker picks the job up at once. In alternating runs that made the raster step up to 1.5x and training up
+// to 14 % faster, and never slower in the median (docs/benchmark.md). The region's closing barrier does wait for
+// a descheduled thread, which is what the pool avoids: a thread split (`set_num_threads`, the live viewer's) and
+// other threads keep the pool.
 #pragma once
 
 #include <ATen/Parallel.h>
