@@ -592,6 +592,41 @@ def test_kernels_called_from_the_main_thread_run_on_torchs_openmp_team():
     assert same == "True"
 
 
+_IDLE_SCRIPT = """
+import threading, time, torch
+from metegs.render import cpu_backend
+from metegs.testing import camera, random_scene
+torch.set_num_threads(2)
+ext = cpu_backend.load_extension()
+g, cam = random_scene(3000, seed=2, sh_degree=1), camera(96, 64, f=70.0)
+vm, K, c = cam.world_to_cameras()[0].float(), cam.intrinsics()[0].float(), cam.centers[0].float()
+project = lambda: ext.project_forward(g.means, g.quats, g.scales, g.opacities, g.sh, vm, K, c, 96, 64, 0.01, 1e10,
+                                      0.3, 1)
+go, done = threading.Event(), threading.Event()
+def other():  # jobs on the pool, each followed at once by one from the main thread (the team, where built)
+    for _ in range(200):
+        go.wait(); go.clear(); project(); done.set()
+threading.Thread(target=other, daemon=True).start()
+for _ in range(200):
+    go.set(); done.wait(); done.clear(); project()
+time.sleep(0.05)
+cpu = time.process_time(); time.sleep(0.5)
+print(time.process_time() - cpu)
+"""
+
+
+def test_the_pools_workers_sleep_once_jobs_from_other_threads_and_the_main_thread_are_done():
+    """A pool worker still spinning after its job may join the next job from the main thread (torch's team); it must
+    then go to sleep like any other time, not wake at once for ever (it used to burn a core while idle)."""
+    import subprocess
+    import sys
+
+    res = subprocess.run([sys.executable, "-c", _IDLE_SCRIPT], capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr[-3000:]
+    idle_cpu_s = float(res.stdout.split()[-1])
+    assert idle_cpu_s < 0.05, f"{idle_cpu_s:.2f} s of CPU time in 0.5 s with nothing to do"
+
+
 def test_kernel_threads_run_under_the_callers_denormal_mode():
     """Every chunk of a kernel runs with the calling thread's flush-to-zero / denormals-are-zero mode, also on pool
     workers started under another mode (the trainer sets torch.set_flush_denormal(True) on its own thread)."""

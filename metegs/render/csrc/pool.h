@@ -116,13 +116,15 @@ class TilePool {
     done_.store(0, std::memory_order_relaxed);
     error_ = nullptr;
     ticket_.store(uint64_t(g) << 32, std::memory_order_release);  // publishes the slot
+    {
+      // the newest generation, on either path: a pool worker that joined a team's job while it was still
+      // spinning must find no newer one when it goes to sleep (else its wait returns at once, for ever)
+      std::lock_guard<std::mutex> lk(sleep_mu_);
+      wake_gen_ = g;
+    }
     if (team) {
       run_on_openmp_team(g, threads);
     } else {
-      {
-        std::lock_guard<std::mutex> lk(sleep_mu_);
-        wake_gen_ = g;
-      }
       wake_.notify_all();
       inside() = true;
       work(g);
