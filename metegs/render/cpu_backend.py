@@ -87,18 +87,27 @@ def build_directory() -> Path:
     return cache / "metegs" / "torch_extensions" / _TORCH_TAG / _cpu_tag()
 
 
+OPENMP_RUNTIME = re.compile(r"lib(g|i)?omp[\d.-]")
+"""File names of OpenMP runtimes: libgomp.so.1, libgomp-<hash>.so.1, libiomp5.so, libomp.so."""
+
+
 def openmp_flags() -> list[str]:
-    """["-fopenmp"] where torch runs its ops on GNU OpenMP loaded as ``libgomp.so.1`` (Linux), so that the extension's
-    OpenMP regions resolve to torch's runtime and team; else [] (the kernels then always use metegs' pool)."""
+    """["-fopenmp"] where torch runs its ops on GNU OpenMP as ``libgomp.so.1`` (Linux), the runtime a GCC ``-fopenmp``
+    build links, so that the extension's OpenMP regions run on torch's team; else [] (the kernels then always use
+    metegs' pool). Decided from torch's installation, not from what else the process has loaded (pycolmap brings
+    its own, renamed libgomp), so that every process builds the cached extension with the same flags."""
     if sys.platform != "linux" or "parallel backend: OpenMP" not in torch.__config__.parallel_info():
         return []
-    try:
+    torch_lib = Path(torch.__file__).parent / "lib"
+    bundled = {f.name for f in torch_lib.glob("*.so*") if OPENMP_RUNTIME.match(f.name)}
+    if bundled:  # a wheel's own runtime: it is ours to share only under the name GCC links
+        return ["-fopenmp"] if "libgomp.so.1" in bundled else []
+    try:  # torch uses a runtime from elsewhere (conda, a system build): the GNU one if it is loaded
         with open("/proc/self/maps", encoding="utf-8", errors="replace") as f:
-            mapped = {Path(line.split()[-1]).name for line in f if "/" in line}
-        runtimes = {name for name in mapped if re.match(r"lib(g|i)?omp\d*[.-]", name)}
+            loaded = {Path(line.split()[-1]).name for line in f if "/" in line}
     except OSError:
         return []
-    return ["-fopenmp"] if runtimes == {"libgomp.so.1"} else []
+    return ["-fopenmp"] if "libgomp.so.1" in loaded else []
 
 
 def _tail(text: str, lines: int = 25) -> str:

@@ -545,6 +545,31 @@ def test_kernel_threads_can_differ_from_torchs_on_the_calling_thread():
     assert all(torch.equal(a, b) for a, b in zip(serial, split))
 
 
+@pytest.mark.skipif("parallel backend: OpenMP" not in torch.__config__.parallel_info(), reason="torch without OpenMP")
+def test_openmp_flags_follow_torchs_own_runtime_not_what_else_is_loaded(tmp_path, monkeypatch):
+    """-fopenmp only where torch's runtime is the libgomp.so.1 a GCC build links; a renamed or another runtime in
+    torch's lib folder means none, whatever else the process has loaded (pycolmap's own renamed libgomp)."""
+    import subprocess
+    import sys
+
+    fake_torch = tmp_path / "torch"
+    (fake_torch / "lib").mkdir(parents=True)
+    monkeypatch.setattr(torch, "__file__", str(fake_torch / "__init__.py"))
+    expected = {"libgomp.so.1": ["-fopenmp"], "libgomp-a34b3233.so.1": [], "libiomp5.so": [], "libomp.so": []}
+    for name, flags in expected.items():
+        runtime = fake_torch / "lib" / name
+        runtime.write_bytes(b"")
+        assert cpu_backend.openmp_flags() == flags, name
+        runtime.unlink()
+    monkeypatch.undo()
+    probe = "from metegs.render import cpu_backend; print(cpu_backend.openmp_flags())"
+    alone = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=300)
+    after = subprocess.run([sys.executable, "-c", "import pycolmap\n" + probe], capture_output=True, text=True,
+                           timeout=300)
+    assert alone.returncode == 0 and after.returncode == 0, alone.stderr[-2000:] + after.stderr[-2000:]
+    assert alone.stdout.split("\n")[-2] == after.stdout.split("\n")[-2] == str(cpu_backend.openmp_flags())
+
+
 _TEAM_SCRIPT = """
 import os, threading, torch
 from metegs.render import cpu_backend
