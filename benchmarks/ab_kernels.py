@@ -41,11 +41,10 @@ def build_revision(rev: str, build_dir: Path):
     name = "metegs_ab_" + hashlib.sha1(sha.encode()).hexdigest()[:10]
     out = src.parent / "build"
     out.mkdir(exist_ok=True)
-    openmp = cpu_backend.openmp_flags()  # as the working tree's build: the same threads for both sides
+    cflags, ldflags = cpu_backend.compile_flags()  # as the working tree's build: the same threads for both sides
     return cpp_extension.load(
         name=name, sources=[str(src / p.name) for p in cpu_backend.SOURCES], extra_include_paths=[str(src)],
-        extra_ldflags=["-pthread", *openmp], extra_cflags=cpu_backend.CFLAGS + openmp, build_directory=str(out),
-        verbose=False,
+        extra_ldflags=ldflags, extra_cflags=cflags, build_directory=str(out), verbose=False,
     )
 
 

@@ -110,6 +110,12 @@ def openmp_flags() -> list[str]:
     return ["-fopenmp"] if "libgomp.so.1" in loaded else []
 
 
+def compile_flags() -> tuple[list[str], list[str]]:
+    """(compiler flags, linker flags) of the extension on this machine: `CFLAGS` plus `openmp_flags`."""
+    openmp = openmp_flags()
+    return CFLAGS + openmp, ["-pthread", *openmp]
+
+
 def _tail(text: str, lines: int = 25) -> str:
     return "\n".join(text.strip().splitlines()[-lines:])
 
@@ -179,8 +185,7 @@ def _build():
         raise CpuExtensionError("the `ninja` build tool is required (pip install ninja)") from exc
     build_dir = build_directory()
     build_dir.mkdir(parents=True, exist_ok=True)
-    openmp = openmp_flags()
-    cflags = CFLAGS + openmp
+    cflags, ldflags = compile_flags()
     built, ninja_file = build_dir / f"{EXTENSION_NAME}.so", build_dir / "build.ninja"
     stale = (
         not built.exists()
@@ -196,7 +201,7 @@ def _build():
         name=EXTENSION_NAME,
         sources=[str(f) for f in SOURCES],
         extra_include_paths=[str(CSRC)],
-        extra_ldflags=["-pthread", *openmp],
+        extra_ldflags=ldflags,
         extra_cflags=cflags,
         build_directory=str(build_dir),
         verbose=False,

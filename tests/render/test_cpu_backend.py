@@ -301,10 +301,11 @@ def test_kernels_built_without_avx512_match_the_default_build(tmp_path):
     give the same bits, the compositing backward the same gradients up to the reciprocal's rounding."""
     from torch.utils import cpp_extension
 
-    flags = [f for f in cpu_backend.CFLAGS if f != "-mprefer-vector-width=512"] + ["-mno-avx512f"]
+    cflags, ldflags = cpu_backend.compile_flags()
+    flags = [f for f in cflags if f != "-mprefer-vector-width=512"] + ["-mno-avx512f"]
     plain = cpp_extension.load(
         name="metegs_test_no_avx512", sources=[str(f) for f in cpu_backend.SOURCES],
-        extra_include_paths=[str(cpu_backend.CSRC)], extra_ldflags=["-pthread"], extra_cflags=flags,
+        extra_include_paths=[str(cpu_backend.CSRC)], extra_ldflags=ldflags, extra_cflags=flags,
         build_directory=str(tmp_path), verbose=False,
     )
     default = cpu_backend.load_extension()
