@@ -9,6 +9,7 @@ L1 against a fixed random image. Each configuration: one warm-up step, then the 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import statistics
 import time
@@ -80,12 +81,17 @@ def _sync(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
+def _tensors(scene: GaussianSet) -> list[torch.Tensor]:
+    """The set's five tensors, the benchmark's parameters."""
+    return [getattr(scene, f.name) for f in dataclasses.fields(scene)]
+
+
 def _time_step(rasterizer, scene: GaussianSet, cam: Cameras, target: torch.Tensor, backward: bool) -> tuple[float, int]:
     """One forward (and, with ``backward``, L1 loss and backward) of ``scene``, whose tensors are leaves that require
     grad (their gradients are cleared first, outside the timed part) -> (milliseconds, pairs rasterised)."""
     device = scene.means.device
     settings = RenderSettings(sh_degree=3)
-    for t in (scene.means, scene.quats, scene.scales, scene.opacities, scene.sh):
+    for t in _tensors(scene):
         t.grad = None
     _sync(device)
     t0 = time.perf_counter()
@@ -137,7 +143,7 @@ def run_raster_benchmark(
     records = []
     for n in sizes:
         scene = benchmark_scene(n, device=device)
-        for t in (scene.means, scene.quats, scene.scales, scene.opacities, scene.sh):
+        for t in _tensors(scene):
             t.requires_grad_(True)  # leaves, as a model's parameters (each step clears their gradients first)
         for width, height in images:
             cam = benchmark_camera(width, height)
