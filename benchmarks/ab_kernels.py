@@ -35,15 +35,17 @@ def build_revision(rev: str, build_dir: Path):
     sha = subprocess.check_output(["git", "rev-parse", rev], cwd=REPO, text=True).strip()
     src = build_dir / sha[:12] / "csrc"
     src.mkdir(parents=True, exist_ok=True)
-    for path in cpu_backend.SOURCES + cpu_backend.HEADERS:
-        rel = path.relative_to(REPO).as_posix()
-        (src / path.name).write_bytes(subprocess.check_output(["git", "show", f"{sha}:{rel}"], cwd=REPO))
+    csrc = cpu_backend.CSRC.relative_to(REPO).as_posix()
+    files = subprocess.check_output(["git", "ls-tree", "--name-only", sha, f"{csrc}/"], cwd=REPO, text=True).split()
+    for rel in files:  # the revision's own sources and headers (files come and go between revisions)
+        (src / Path(rel).name).write_bytes(subprocess.check_output(["git", "show", f"{sha}:{rel}"], cwd=REPO))
+    sources = sorted(str(src / Path(rel).name) for rel in files if rel.endswith(".cpp"))
     name = "metegs_ab_" + hashlib.sha1(sha.encode()).hexdigest()[:10]
     out = src.parent / "build"
     out.mkdir(exist_ok=True)
     cflags, ldflags = cpu_backend.compile_flags()  # as the working tree's build: the same threads for both sides
     return cpp_extension.load(
-        name=name, sources=[str(src / p.name) for p in cpu_backend.SOURCES], extra_include_paths=[str(src)],
+        name=name, sources=sources, extra_include_paths=[str(src)],
         extra_ldflags=ldflags, extra_cflags=cflags, build_directory=str(out), verbose=False,
     )
 

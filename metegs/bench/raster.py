@@ -23,7 +23,7 @@ from metegs.engine.allocator import keep_freed_memory
 from metegs.gaussians.model import GaussianSet
 from metegs.registry import registry
 from metegs.render.base import RenderSettings
-from metegs.render.cpu_backend import thread_split
+from metegs.render.cpu_backend import CpuRasterizer, measure_peak_gflops, thread_split
 
 PEAK_GFLOPS = 330.0
 """Peak float32 FLOP/s of the 2-core AVX-512 CI machine (research note: 2 x 2.6 GHz x 2 FMA x 16 lanes x 2)."""
@@ -52,6 +52,11 @@ class RasterRecord:
     """Arithmetic floor of the research note: 256 pixels x pairs of the plain 3-sigma binning x 100 flops at peak."""
     torch_threads: int
     """Threads of torch's own ops (the loss, autograd) while the backend ran."""
+    machine_peak_gflops: float | None = None
+    """Float32 multiply-add throughput of the cpu kernels' threads, measured between the timed steps (median;
+    `measure_peak_gflops`): this machine's peak in this run. None on a GPU or without the cpu extension."""
+    machine_floor_ms: float | None = None
+    """The arithmetic floor at ``machine_peak_gflops`` instead of the research note's peak (None with it)."""
 
 
 def benchmark_scene(n: int, seed: int = 0, device: str | torch.device = "cpu") -> GaussianSet:
@@ -140,6 +145,7 @@ def run_raster_benchmark(
     torch.set_flush_denormal(True)  # as training runs (Trainer): denormal arithmetic is many times slower
     if device.type == "cpu":
         keep_freed_memory()  # as training runs
+    probe = device.type == "cpu" and CpuRasterizer.available()
     records = []
     for n in sizes:
         scene = benchmark_scene(n, device=device)
@@ -148,14 +154,19 @@ def run_raster_benchmark(
         for width, height in images:
             cam = benchmark_camera(width, height)
             target = torch.rand(height, width, 3, generator=torch.Generator().manual_seed(0)).to(device)
-            floor_ms = plain_pairs(scene, cam) * 256 * FLOPS_PER_PAIR / (PEAK_GFLOPS * 1e9) * 1e3
+            flops = plain_pairs(scene, cam) * 256 * FLOPS_PER_PAIR
+            floor_ms = flops / (PEAK_GFLOPS * 1e9) * 1e3
             for name in backends:
                 rasterizer = registry("rasterizer").get(name)()
                 _time_step(rasterizer, scene, cam, target, backward=True)  # warm-up (and extension load)
                 with thread_split(name, torch_threads):
                     ops_threads = torch.get_num_threads()
                     fwd = [_time_step(rasterizer, scene, cam, target, backward=False)[0] for _ in range(repeats)]
-                    fb = [_time_step(rasterizer, scene, cam, target, backward=True) for _ in range(repeats)]
+                    fb, peaks = [], []
+                    for _ in range(repeats):
+                        if probe:  # the machine's peak between the timed steps, so that both see the same phase
+                            peaks.append(measure_peak_gflops())
+                        fb.append(_time_step(rasterizer, scene, cam, target, backward=True))
                     # memory in steps of their own: on CPU a thread samples the resident set every 0.5 ms, which
                     # would take CPU time and the GIL from the timed steps
                     with PeakMemory(device) as mem:
@@ -173,6 +184,8 @@ def run_raster_benchmark(
                         num_intersections=fb[0][1],
                         floor_ms=floor_ms,
                         torch_threads=ops_threads,
+                        machine_peak_gflops=statistics.median(peaks) if peaks else None,
+                        machine_floor_ms=flops / (statistics.median(peaks) * 1e9) * 1e3 if peaks else None,
                     )
                 )
                 if progress is not None:

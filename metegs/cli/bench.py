@@ -227,7 +227,7 @@ def raster(args: RasterArgs) -> list[dict]:
 
     def row(r: dict) -> list[str]:
         key = (r["num_gaussians"], r["width"], r["height"])
-        speedup = ref[key] / r["forward_backward_ms"] if key in ref else float("nan")
+        speedup = f"{ref[key] / r['forward_backward_ms']:.1f}" if key in ref else "-"  # torch not in this run
         return [
             r["backend"],
             str(r["num_gaussians"]),
@@ -235,14 +235,18 @@ def raster(args: RasterArgs) -> list[dict]:
             str(r["num_intersections"]),
             f"{r['forward_ms']:.1f}",
             f"{r['forward_backward_ms']:.1f}",
-            f"{speedup:.1f}",
+            speedup,
             f"{r['forward_backward_ms'] / r['floor_ms']:.1f}",
+            "-" if r["machine_floor_ms"] is None else f"{r['forward_backward_ms'] / r['machine_floor_ms']:.1f}",
+            "-" if r["machine_peak_gflops"] is None else f"{r['machine_peak_gflops']:.0f}",
             f"{r['peak_mem_mb']:.0f}",
         ]
 
     table = _table(
-        "rasteriser: forward / forward+backward (median ms), speed-up over torch, peak memory",
-        ("backend", "N", "image", "pairs", "fwd ms", "fwd+bwd ms", "x torch (f+b)", "x floor (f+b)", "peak MB"),
+        "rasteriser: forward / forward+backward (median ms), speed-up over torch, multiples of the arithmetic floor "
+        "at the research note's peak (330 GFLOP/s) and at this machine's peak measured between the steps, peak memory",
+        ("backend", "N", "image", "pairs", "fwd ms", "fwd+bwd ms", "x torch (f+b)", "x floor (f+b)",
+         "x floor here (f+b)", "peak GFLOP/s here", "peak MB"),
     )
     return args.report(records, table, row)
 

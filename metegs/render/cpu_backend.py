@@ -4,7 +4,8 @@ Three ops, each the equivalent of a torch reference stage (and tested against it
 ``csrc/project.cpp`` (EWA projection + SH colours, `ProjectShade`; reference: `project_gaussians` and
 `gaussian_colors`), ``csrc/binning.cpp`` (depth-sorted tile lists with an exact ellipse-tile test;
 reference: `bin_gaussians`) and ``csrc/composite.cpp`` (tile compositing, `CompositeTiles`; reference:
-`torch_backend.composite_tiles`). The extension is compiled with `torch.utils.cpp_extension` on first use (about a minute)
+`torch_backend.composite_tiles`), and ``csrc/peak.cpp``, the float32 multiply-add throughput of the kernels' threads
+(`measure_peak_gflops`, the raster benchmark's measured floor). The extension is compiled with `torch.utils.cpp_extension` on first use (about a minute)
 and cached in ``~/.cache/metegs/torch_extensions/<torch version>/<cpu tag>/`` (``$XDG_CACHE_HOME``
 is honoured, ``METEGS_EXTENSIONS_DIR`` overrides the whole path); later processes only load it.
 When it cannot be built, `CpuRasterizer.available` is False (with one warning saying why), so
@@ -36,7 +37,7 @@ from metegs.render.pipeline import finish_render, resolve_sh_degree
 from metegs.render.tiles import TILE_SIZE, TileBins
 
 CSRC = Path(__file__).parent / "csrc"
-SOURCES = [CSRC / name for name in ("bindings.cpp", "project.cpp", "binning.cpp", "composite.cpp")]
+SOURCES = [CSRC / name for name in ("bindings.cpp", "project.cpp", "binning.cpp", "composite.cpp", "peak.cpp")]
 HEADERS = [CSRC / "metegs_cpu.h", CSRC / "pool.h"]
 _TORCH_TAG = "".join(ch if ch.isalnum() else "_" for ch in torch.__version__)
 EXTENSION_NAME = f"metegs_cpu_composite_{_TORCH_TAG}"
@@ -134,6 +135,25 @@ def _describe_build_failure(exc: Exception) -> str:
 def load_extension():
     """The compiled extension module (built on first use; raises `CpuExtensionError` if impossible)."""
     return EXTENSION.load()
+
+
+PEAK_PROBE_CHUNKS_PER_THREAD = 8
+"""Chunks of a peak probe per kernel thread, claimed dynamically as the kernels claim tiles."""
+
+
+def measure_peak_gflops(iterations: int = 20000) -> float:
+    """Float32 multiply-add throughput (GFLOP/s) of the ``cpu`` kernels' threads, now: the peak of the raster
+    benchmark's measured arithmetic floor. Runs ``iterations`` steps of 12 chains of 16-lane multiply-adds per chunk,
+    8 chunks per kernel thread (``csrc/peak.cpp``; about 0.5 ms at 2 x 115 GFLOP/s with the default), on the same
+    threads and scheduling as the kernels, so it slows down with them when other processes take the cores.
+    Raises `CpuExtensionError` if the chains' checksum shows that not all the counted work ran."""
+    ext = load_extension()
+    chunks = PEAK_PROBE_CHUNKS_PER_THREAD * ext.get_num_threads()
+    seconds, flops, checksum = ext.fma_throughput(chunks, int(iterations))
+    expected = chunks * 12 * 16 * int(iterations)
+    if checksum != expected:
+        raise CpuExtensionError(f"fma_throughput: checksum {checksum} != {expected}; the probe did not run its work")
+    return flops / seconds / 1e9
 
 
 def set_kernel_threads(n: int) -> None:

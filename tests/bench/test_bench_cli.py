@@ -34,6 +34,20 @@ def test_benchmark_scene_has_the_research_depth_complexity():
     assert plain_pairs(g, benchmark_camera(300, 200)) > 20000
 
 
+def test_raster_records_the_floor_at_the_machines_measured_peak():
+    """With the cpu extension, every CPU record carries the multiply-add peak measured between its timed steps and
+    the arithmetic floor at that peak: the research note's floor scaled by 330 GFLOP/s / the measured peak."""
+    from metegs.bench.raster import PEAK_GFLOPS
+    from metegs.render.select import usable_backends
+
+    if "cpu" not in usable_backends("cpu"):
+        pytest.skip("the cpu rasteriser extension cannot be built here")
+    rows = raster(RasterArgs(sizes=[300], images=["48x32"], repeats=2, backends=["torch", "cpu"]))
+    for r in rows:
+        assert 0 < r["machine_peak_gflops"] < 1e5
+        assert r["machine_floor_ms"] == pytest.approx(r["floor_ms"] * PEAK_GFLOPS / r["machine_peak_gflops"])
+
+
 def test_step_records(tmp_path):
     rows = step(StepArgs(sizes=[500], width=40, height=30, repeats=1, backends=["torch"], output=tmp_path / "s.json"))
     assert len(rows) == 1 and rows[0]["iterations_per_s"] > 0 and rows[0]["width"] == 40

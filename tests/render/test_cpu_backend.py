@@ -741,3 +741,31 @@ def test_thread_split_sets_this_threads_counts_and_restores_them():
                 assert (torch.get_num_threads(), ext.get_num_threads()) == (3, 3)
     finally:
         torch.set_num_threads(previous)
+
+
+def test_peak_probe_runs_the_work_it_counts():
+    """fma_throughput's chains end where their recurrence says (acc <- acc a + b from 0: n b with a = 1, and the
+    fixed point b / (1 - a) with a = 1/2), so the work it times ran and used the caller's a and b."""
+    ext = cpu_backend.load_extension()
+    chunks, iterations, lanes = 5, 1000, 12 * 16
+    seconds, flops, checksum = ext.fma_throughput(chunks, iterations)
+    assert seconds > 0 and flops == 2 * lanes * iterations * chunks
+    assert checksum == chunks * lanes * iterations
+    assert ext.fma_throughput(chunks, iterations, b=0.5)[2] == chunks * lanes * iterations / 2
+    assert ext.fma_throughput(chunks, iterations, a=0.5, b=1.0)[2] == chunks * lanes * 2.0
+    with pytest.raises(RuntimeError, match="positive"):
+        ext.fma_throughput(0, iterations)
+    assert 0 < cpu_backend.measure_peak_gflops(iterations=200) < 1e5
+
+
+def test_peak_probe_refuses_a_checksum_that_shows_missing_work(monkeypatch):
+    class Short:
+        def get_num_threads(self):
+            return 1
+
+        def fma_throughput(self, chunks, iterations):
+            return [1e-3, 2.0 * 12 * 16 * iterations * chunks, 12 * 16 * iterations * (chunks - 1)]
+
+    monkeypatch.setattr(cpu_backend, "load_extension", lambda: Short())
+    with pytest.raises(CpuExtensionError, match="checksum"):
+        cpu_backend.measure_peak_gflops()

@@ -20,6 +20,9 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("finish_forward", &metegs_cpu::finish_forward, "background and expected depth of a render (CPU)", nogil);
   m.def("finish_backward", &metegs_cpu::finish_backward, "backward of finish_forward (CPU)", nogil, py::arg("alpha"),
         py::arg("depth_sum"), py::arg("background"), py::arg("g_rgb"), py::arg("g_depth") = py::none());
+  m.def("fma_throughput", &metegs_cpu::fma_throughput,
+        "float32 multiply-adds on the kernels' threads -> [seconds, flops, checksum] (the machine's peak, measured)",
+        nogil, py::arg("chunks"), py::arg("iterations"), py::arg("a") = 1.0, py::arg("b") = 1.0);
   m.def("set_num_threads", [](int64_t n) { metegs::thread_override() = std::max<int64_t>(n, 0); },
         "threads of the metegs kernels called from this thread (0: torch's intra-op count)", py::arg("n"));
   m.def("get_num_threads", &metegs::num_threads, "threads of the metegs kernels called from this thread");

@@ -118,21 +118,11 @@ struct Consts {
   static constexpr scalar_t t_min = scalar_t(1e-4);
 };
 
-// a * b + c per lane, rounded once where the CPU fuses it (float32 with AVX-512, or AVX2 with FMA), else
+// a * b + c per lane, rounded once where the CPU fuses it (fmadd16: float32 with AVX-512, or AVX2 with FMA), else
 // rounded twice. Forward and backward compute their alphas with the same calls (row_alpha), so they agree bit
 // for bit either way; the rest of the file is built with -ffp-contract=off and fuses nothing on its own.
 inline __attribute__((always_inline)) Vec<float> fmadd(Vec<float> a, Vec<float> b, Vec<float> c) {
-#if defined(__AVX512F__)
-  return (Vec<float>)_mm512_fmadd_ps((__m512)a, (__m512)b, (__m512)c);
-#elif defined(__FMA__)
-  __m256 a2[2], b2[2], c2[2];
-  std::memcpy(a2, &a, sizeof(a)), std::memcpy(b2, &b, sizeof(b)), std::memcpy(c2, &c, sizeof(c));
-  for (int h = 0; h < 2; ++h) a2[h] = _mm256_fmadd_ps(a2[h], b2[h], c2[h]);
-  std::memcpy(&a, a2, sizeof(a));
-  return a;
-#else
-  return a * b + c;
-#endif
+  return fmadd16(a, b, c);
 }
 
 inline __attribute__((always_inline)) Vec<double> fmadd(Vec<double> a, Vec<double> b, Vec<double> c) {

@@ -10,7 +10,7 @@
 #include <cstring>
 #include <limits>
 #include <vector>
-#if defined(__AVX512F__)
+#if defined(__AVX512F__) || defined(__FMA__)
 #include <immintrin.h>
 #endif
 
@@ -20,6 +20,22 @@ constexpr int TILE = 16;  // tile side (metegs.render.tiles.TILE_SIZE)
 
 // 16 float lanes (a tile row, or 16 Gaussians): one AVX-512 register, two AVX2 ones elsewhere.
 typedef float Float16 __attribute__((vector_size(16 * sizeof(float))));
+
+// a * b + c per lane, rounded once where the CPU fuses it (AVX-512, or AVX2 with FMA), else rounded twice (the
+// extension is built with -ffp-contract=off: multiply-adds are fused only where this is called).
+inline __attribute__((always_inline)) Float16 fmadd16(Float16 a, Float16 b, Float16 c) {
+#if defined(__AVX512F__)
+  return (Float16)_mm512_fmadd_ps((__m512)a, (__m512)b, (__m512)c);
+#elif defined(__FMA__)
+  __m256 a2[2], b2[2], c2[2];
+  std::memcpy(a2, &a, sizeof(a)), std::memcpy(b2, &b, sizeof(b)), std::memcpy(c2, &c, sizeof(c));
+  for (int h = 0; h < 2; ++h) a2[h] = _mm256_fmadd_ps(a2[h], b2[h], c2[h]);
+  std::memcpy(&a, a2, sizeof(a));
+  return a;
+#else
+  return a * b + c;
+#endif
+}
 
 // The first n (0..16) floats at src as a Float16, zeros after them (AVX-512: one masked load).
 inline __attribute__((always_inline)) Float16 load_first(const float* src, int64_t n) {
@@ -100,5 +116,9 @@ std::vector<at::Tensor> finish_forward(at::Tensor color, at::Tensor alpha, at::T
 // [H, W]; g_depth: none = 0.
 std::vector<at::Tensor> finish_backward(at::Tensor alpha, at::Tensor depth_sum, at::Tensor background, at::Tensor g_rgb,
                                         c10::optional<at::Tensor> g_depth);
+
+// peak.cpp: the float32 multiply-add throughput of the kernels' threads (the arithmetic floor's peak, measured).
+// -> {seconds, flops, checksum}; see fma_throughput's comment.
+std::vector<double> fma_throughput(int64_t chunks, int64_t iterations, double a, double b);
 
 }  // namespace metegs_cpu
