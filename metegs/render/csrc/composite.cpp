@@ -38,6 +38,7 @@
 #include <cstring>
 #include <immintrin.h>
 #include <limits>
+#include <memory>
 #include <type_traits>
 #include <vector>
 
@@ -679,10 +680,12 @@ std::vector<at::Tensor> composite_backward(at::Tensor means2d, at::Tensor conics
     // both added into the outputs. The same sums for any thread count: deterministic.
     const int64_t* __restrict__ idp = ids.data_ptr<int64_t>();
     const scalar_t* __restrict__ src = per_isect.data_ptr<scalar_t>();
-    std::vector<scalar_t> acc(2 * N * S, scalar_t(0));
+    // each half zero-filled by the thread that sums into it (1.6 MB at 20k Gaussians: serial, it took 0.1 ms)
+    const std::unique_ptr<scalar_t[]> acc(new scalar_t[2 * N * S]);
     metegs::parallel_for(0, 2, 1, [&](int64_t begin, int64_t end) {
       for (int64_t h = begin; h < end; ++h) {
-        scalar_t* __restrict__ dst = acc.data() + h * N * S;
+        scalar_t* __restrict__ dst = acc.get() + h * N * S;
+        std::fill(dst, dst + N * S, scalar_t(0));
         for (int64_t m = h * M / 2, m1 = (h + 1) * M / 2; m < m1; ++m) {
           scalar_t* __restrict__ row = dst + idp[m] * S;
           const scalar_t* __restrict__ r = src + m * S;
@@ -695,7 +698,7 @@ std::vector<at::Tensor> composite_backward(at::Tensor means2d, at::Tensor conics
     scalar_t* g_dep = outs[4].data_ptr<scalar_t>();
     metegs::parallel_for(0, N, 4096, [&](int64_t begin, int64_t end) {
       for (int64_t g = begin; g < end; ++g) {
-        const scalar_t *p = acc.data() + g * S, *q = p + N * S;
+        const scalar_t *p = acc.get() + g * S, *q = p + N * S;
         g_m2[2 * g] = p[0] + q[0], g_m2[2 * g + 1] = p[1] + q[1];
         for (int k = 0; k < 3; ++k) g_con[3 * g + k] = p[2 + k] + q[2 + k];
         g_op[g] = p[5] + q[5];
