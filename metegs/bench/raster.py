@@ -169,6 +169,7 @@ def run_raster_benchmark(
                         fb.append(_time_step(rasterizer, scene, cam, target, backward=True))
                     # memory in steps of their own: on CPU a thread samples the resident set every 0.5 ms, which
                     # would take CPU time and the GIL from the timed steps
+                    peak = statistics.median(peaks) if peaks else None
                     with PeakMemory(device) as mem:
                         for _ in range(min(repeats, 3)):
                             _time_step(rasterizer, scene, cam, target, backward=True)
@@ -184,8 +185,8 @@ def run_raster_benchmark(
                         num_intersections=fb[0][1],
                         floor_ms=floor_ms,
                         torch_threads=ops_threads,
-                        machine_peak_gflops=statistics.median(peaks) if peaks else None,
-                        machine_floor_ms=flops / (statistics.median(peaks) * 1e9) * 1e3 if peaks else None,
+                        machine_peak_gflops=peak,
+                        machine_floor_ms=flops / (peak * 1e9) * 1e3 if peak else None,
                     )
                 )
                 if progress is not None:

@@ -48,6 +48,23 @@ def test_raster_records_the_floor_at_the_machines_measured_peak():
         assert r["machine_floor_ms"] == pytest.approx(r["floor_ms"] * PEAK_GFLOPS / r["machine_peak_gflops"])
 
 
+def test_raster_table_marks_what_this_run_did_not_measure(capsys, monkeypatch):
+    """Without torch in the run there is no speed-up, and without a measured peak no floor here: the table says "-"
+    there, never nan."""
+    import metegs.bench.raster as raster_module
+    from metegs.render.select import usable_backends
+
+    if "cpu" not in usable_backends("cpu"):
+        pytest.skip("the cpu rasteriser extension cannot be built here")
+    monkeypatch.setattr(raster_module.CpuRasterizer, "available", staticmethod(lambda device="cpu": False))
+    monkeypatch.setenv("COLUMNS", "250")
+    rows = raster(RasterArgs(sizes=[300], images=["48x32"], repeats=1, backends=["cpu"]))
+    assert rows[0]["machine_peak_gflops"] is None and rows[0]["machine_floor_ms"] is None
+    line = next(x for x in capsys.readouterr().out.splitlines() if "48x32" in x)
+    cells = [c.strip() for c in line.strip("│ ").split("│")]
+    assert cells[0] == "cpu" and cells[6] == "-" and cells[8:10] == ["-", "-"] and "nan" not in line
+
+
 def test_step_records(tmp_path):
     rows = step(StepArgs(sizes=[500], width=40, height=30, repeats=1, backends=["torch"], output=tmp_path / "s.json"))
     assert len(rows) == 1 and rows[0]["iterations_per_s"] > 0 and rows[0]["width"] == 40
