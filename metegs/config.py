@@ -12,7 +12,7 @@ from typing import Any, TypeVar
 
 import yaml
 
-from metegs.errors import ConfigError
+from metegs.errors import ConfigError, DataError
 
 C = TypeVar("C")
 
@@ -45,6 +45,18 @@ def to_dict(config: Any) -> Any:
     if isinstance(config, Path):
         return str(config)
     return config
+
+
+def absolute_paths(config: C) -> C:
+    """A copy of a config tree with every `Path` field made absolute (resolved against the working folder)."""
+    changes = {}
+    for f in dataclasses.fields(config):
+        value = getattr(config, f.name)
+        if isinstance(value, Path):
+            changes[f.name] = value.resolve()
+        elif dataclasses.is_dataclass(value) and not isinstance(value, type):
+            changes[f.name] = absolute_paths(value)
+    return dataclasses.replace(config, **changes)
 
 
 def _coerce(value: Any, annotation: Any, where: str) -> Any:
@@ -132,6 +144,16 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
 def atomic_write_text(path: Path, text: str) -> None:
     """`atomic_write_bytes` of UTF-8 ``text``."""
     atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def write_result(path: Path, text: str) -> None:
+    """`atomic_write_text` of a result that must not be lost: when the write fails, the text goes to standard output
+    and a DataError names the path."""
+    try:
+        atomic_write_text(path, text)
+    except OSError as exc:
+        print(text, flush=True)
+        raise DataError(path, f"cannot write ({exc.strerror or exc}); the result is printed above instead") from None
 
 
 def save_yaml(config: Any, path: Path, header: dict[str, Any] | None = None) -> None:

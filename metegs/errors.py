@@ -26,5 +26,11 @@ class PluginError(MetegsError):
     """A plugin or registered component cannot be loaded."""
 
 
+class Interrupted(MetegsError):
+    """The user stopped a command (Ctrl-C); the message says what was kept and how to go on."""
+
+    exit_code = 130
+
+
 class TrainingDiverged(MetegsError):
     """Training produced non-finite values; the message names them and a checkpoint to resume from."""

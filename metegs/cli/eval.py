@@ -11,7 +11,7 @@ import tyro
 from rich.console import Console
 
 from metegs.cli import run_cli
-from metegs.config import atomic_write_text
+from metegs.config import write_result
 from metegs.errors import MetegsError
 
 
@@ -55,7 +55,7 @@ def main(args: EvalArgs) -> dict:
         num_gaussians=len(trainer.model),
         source=str(args.ply or args.checkpoint or "latest checkpoint"),
     )
-    atomic_write_text(args.output or Path(args.run_dir) / "eval.json", json.dumps(m, indent=2))
+    write_result(args.output or Path(args.run_dir) / "eval.json", json.dumps(m, indent=2))
     lp = m["lpips"]
     Console(stderr=True).print(
         f"{args.split}: PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f}, LPIPS "

@@ -123,7 +123,7 @@ def main(argv: list[str] | None = None) -> dict:
         f"[bold]metegs[/] {c.method} on {trainer.scene.parser} scene "
         f"({len(trainer.dataset.train_indices)} train / {len(trainer.dataset.test_indices)} test views, "
         f"{int(trainer.dataset.cameras.width[0])}x{int(trainer.dataset.cameras.height[0])} px), "
-        f"backend [bold]{c.backend}[/] on {c.device}, {len(trainer.model)} initial Gaussians -> {trainer.run_dir}"
+        f"backend [bold]{c.backend}[/] on {c.device}, {len(trainer.model)} initial Gaussians"
     )
     viewer = None
     if getattr(c, "viewer", False):

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Annotated
 
 import torch
 
@@ -16,6 +17,7 @@ from metegs.config import InstantiateConfig
 from metegs.engine.optim import append_rows, select_rows
 from metegs.gaussians.model import GaussianModel, inverse_sigmoid
 from metegs.render.base import RenderOutput
+from metegs.validate import FRACTION, NON_NEGATIVE, POSITIVE, Range
 
 
 @dataclass
@@ -23,33 +25,33 @@ class ADCConfig(InstantiateConfig):
     """Adaptive density control of 3DGS."""
 
     _target: type = field(default_factory=lambda: AdaptiveDensityControl, repr=False)
-    grow_grad2d: float = 2e-4
+    grow_grad2d: Annotated[float, NON_NEGATIVE] = 2e-4
     """Clone/split Gaussians whose mean screen-space (NDC) position gradient exceeds this."""
-    grow_scale3d: float = 0.01
+    grow_scale3d: Annotated[float, NON_NEGATIVE] = 0.01
     """Clone if the largest scale is at most this fraction of the scene extent, else split."""
-    split_samples: int = 2
+    split_samples: Annotated[int, Range(1)] = 2
     """Number of Gaussians a split one becomes."""
-    split_scale_divisor: float = 1.6
+    split_scale_divisor: Annotated[float, POSITIVE] = 1.6
     """Scales of split Gaussians are divided by this (0.8 x split_samples in 3DGS)."""
-    prune_opacity: float = 0.005
+    prune_opacity: Annotated[float, FRACTION] = 0.005
     """Prune Gaussians whose opacity falls below this."""
-    prune_scale3d: float = 0.1
+    prune_scale3d: Annotated[float, POSITIVE] = 0.1
     """After the first opacity reset, prune Gaussians larger than this fraction of the scene extent."""
-    refine_start: float = 500 / 30000
+    refine_start: Annotated[float, FRACTION] = 500 / 30000
     """Start of refinement, as a fraction of the run."""
-    refine_stop: float = 15000 / 30000
+    refine_stop: Annotated[float, FRACTION] = 15000 / 30000
     """End of refinement, as a fraction of the run."""
-    refine_every: int = 100
+    refine_every: Annotated[int, Range(1)] = 100
     """Refine every this many steps; shorter runs refine more often (about 10 times in the window), but never
     more than once per pass over the training views, so the averaged gradients see every view."""
-    reset_every: float = 3000 / 30000
+    reset_every: Annotated[float, FRACTION] = 3000 / 30000
     """Opacity reset period, as a fraction of the run (0 disables); skipped when fewer than 3 refinements fit
     between resets (opacities need them to recover)."""
-    reset_opacity: float = 0.01
+    reset_opacity: Annotated[float, FRACTION] = 0.01
     """Opacities are reset to min(opacity, this)."""
-    pause_after_reset: int = 0
+    pause_after_reset: Annotated[int, NON_NEGATIVE] = 0
     """Steps after a reset during which no refinement happens."""
-    max_gaussians: int = 1_000_000
+    max_gaussians: Annotated[int, Range(1)] = 1_000_000
     """No growth beyond this many Gaussians."""
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import tyro
 
@@ -12,7 +12,10 @@ from metegs.config import InstantiateConfig
 from metegs.data.config import DatasetConfig
 from metegs.densify.adc import ADCConfig
 from metegs.engine.optim import OptimConfig
+from metegs.errors import ConfigError
+from metegs.gaussians.sh import MAX_SH_DEGREE
 from metegs.losses.photometric import PhotometricLossConfig
+from metegs.validate import FRACTION, NON_NEGATIVE, POSITIVE, Range, check_config
 from metegs.weather.conditions import ConditionsConfig
 
 
@@ -20,15 +23,15 @@ from metegs.weather.conditions import ConditionsConfig
 class ModelConfig:
     """The scene Gaussians: SH degree and initialisation."""
 
-    sh_degree: int = 3
+    sh_degree: Annotated[int, Range(0, MAX_SH_DEGREE)] = 3
     """Maximum SH degree (raised by one every `sh-degree-every` of the run)."""
-    sh_degree_every: float = 1000 / 30000
+    sh_degree_every: Annotated[float, FRACTION] = 1000 / 30000
     """Fraction of the run between SH degree increments (1000 of 30k steps in 3DGS)."""
-    init_opacity: float = 0.1
+    init_opacity: Annotated[float, Range(0, 1, lo_open=True, hi_open=True)] = 0.1
     """Opacity of the initial Gaussians."""
-    init_scale_multiplier: float = 1.0
+    init_scale_multiplier: Annotated[float, POSITIVE] = 1.0
     """Multiplier of the initial scales (mean distance to the 3 nearest points)."""
-    init_random_points: int = 20000
+    init_random_points: Annotated[int, Range(1)] = 20000
     """Number of random initial Gaussians when the scene has no points (placed where training views overlap)."""
     random_init: bool = False
     """Ignore the scene's points and start from random Gaussians."""
@@ -53,7 +56,7 @@ class TrainConfig(InstantiateConfig):
     """Runs are written to <output-dir>/<scene>/<method>/<experiment-name>/."""
     experiment_name: str | None = None
     """Name of the run folder; None uses a timestamp."""
-    max_steps: int = 3000
+    max_steps: Annotated[int, Range(1)] = 3000
     """Number of training steps (one view per step)."""
     seed: int = 0
     """Seed of every random choice (initialisation, view order, densification)."""
@@ -61,9 +64,9 @@ class TrainConfig(InstantiateConfig):
     """Rasteriser backend: auto, torch, or another registered one (auto: the fastest available)."""
     device: str = "auto"
     """Torch device: auto (cuda if available, else cpu), cpu, cuda, cuda:1, ..."""
-    threads: int = 0
+    threads: Annotated[int, NON_NEGATIVE] = 0
     """CPU threads for torch (0: torch's default)."""
-    torch_threads: int = 0
+    torch_threads: Annotated[int, NON_NEGATIVE] = 0
     """With the `cpu` backend: threads of torch's own ops (losses, Adam, autograd) while the rasteriser's kernels keep
     `threads` on metegs' pool, which never waits for a descheduled thread (0: the same; the kernels then share torch's
     OpenMP team, faster alone). The live viewer sets 1 while a browser shares the cores."""
@@ -76,9 +79,9 @@ class TrainConfig(InstantiateConfig):
     """The weather of the capture (met record and time, or explicit values)."""
     background: Literal["black", "white", "random"] = "black"
     """Background colour behind the Gaussians during training (evaluation uses black, or white for 'white')."""
-    eval_every: float = 0.25
+    eval_every: Annotated[float, FRACTION] = 0.25
     """Evaluate the test views every this fraction of the run (0: only at the end)."""
-    checkpoint_every: int = 1000
+    checkpoint_every: Annotated[int, NON_NEGATIVE] = 1000
     """Save a checkpoint every this many steps (0: only at the end)."""
     save_renders: bool = True
     """Save test-view renders as PNG at the end."""
@@ -92,7 +95,7 @@ class TrainConfig(InstantiateConfig):
     """Open the browser viewer (viser) while training: watch, pause / step, drive the weather; it stays open after."""
     viewer_host: str = "127.0.0.1"
     """Address the viewer binds to (0.0.0.0 exposes it to the network)."""
-    viewer_port: int = 7007
+    viewer_port: Annotated[int, Range(0, 65535)] = 7007
     """Port of the viewer (the next free one when it is taken)."""
     dataset: DatasetConfig = field(default_factory=DatasetConfig)
     """How views are read, scaled and split."""
@@ -104,6 +107,12 @@ class TrainConfig(InstantiateConfig):
     """Densification."""
     loss: PhotometricLossConfig = field(default_factory=PhotometricLossConfig)
     """Photometric loss."""
+
+    def __post_init__(self) -> None:
+        check_config(self)
+        name = self.experiment_name
+        if name is not None and (not name.strip() or name in (".", "..") or any(c in name for c in "/\\\0")):
+            raise ConfigError(f"--experiment-name {name!r}: expected a folder name (no path separators, not . or ..)")
 
 
 def _trainer_class():

@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Annotated, Literal
 
 from metegs.densify.depth_prune import DepthPruneConfig
 from metegs.densify.extra_points import ExtraPointsConfig
 from metegs.engine.config import TrainConfig
 from metegs.losses.perceptual import PerceptualLossConfig
 from metegs.models.gtn import GTNConfig
+from metegs.validate import NON_NEGATIVE, Range
 from metegs.weather.fog_analytic import FogAnalyticConfig
 from metegs.weather.fog_gaussians import FogGaussiansConfig
 from metegs.weather.learnable import LearnableWeatherConfig
@@ -21,11 +22,11 @@ from metegs.weather.rain_streaks import RainStreaksConfig
 class LossWeights:
     """Weights of the terms of L = λ_photo·L_photo + λ_perc·L_perc + λ_clean·L_clean."""
 
-    photo: float = 1.0
+    photo: Annotated[float, NON_NEGATIVE] = 1.0
     """λ_photo: weather branch against the observed (degraded) photo, (1−λ)·L1 + λ·(1−SSIM)."""
-    perceptual: float = 0.05
+    perceptual: Annotated[float, NON_NEGATIVE] = 0.05
     """λ_perc: clean branch against the clean reference on frozen pretrained features (0: off)."""
-    clean: float = 0.1
+    clean: Annotated[float, NON_NEGATIVE] = 0.1
     """λ_clean: L1 of the clean branch against the clean reference (0: off)."""
 
 
@@ -51,7 +52,7 @@ class MeteGSConfig(TrainConfig):
     """Gaussian Transformation Network of the weather branch."""
     perceptual: PerceptualLossConfig = field(default_factory=PerceptualLossConfig)
     """Perceptual loss of the clean branch (backbone and layers)."""
-    densify_through_fog: float = 10.0
+    densify_through_fog: Annotated[float, Range(1)] = 10.0
     """Densification sees the scene as if unfogged: each scene Gaussian's screen-space gradient is divided by the
     fog's transmittance at its distance, by at most this factor (1: off). Without it fog, which scales every
     gradient reaching the scene by t, slows densification by the mean t."""
@@ -65,7 +66,7 @@ class MeteGSConfig(TrainConfig):
     """Extra-point compensation options."""
     learnable_weather: LearnableWeatherConfig = field(default_factory=LearnableWeatherConfig)
     """Bounds, learning rates and coverage prior of the per-view weather Gaussians."""
-    weather_lr: float = 0.01
+    weather_lr: Annotated[float, NON_NEGATIVE] = 0.01
     """Learning rate of global weather parameters (fog log-β and airlight logit)."""
     rain_streaks: RainStreaksConfig = field(default_factory=lambda: RainStreaksConfig(max_count=2000))
     """Options of `rain-streaks` (when listed in `weather`)."""

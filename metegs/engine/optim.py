@@ -4,30 +4,33 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Annotated
 
 import torch
 from torch import nn
+
+from metegs.validate import NON_NEGATIVE, POSITIVE
 
 
 @dataclass
 class OptimConfig:
     """Learning rates of the 3DGS reference (INRIA), per parameter group."""
 
-    means_lr: float = 1.6e-4
+    means_lr: Annotated[float, NON_NEGATIVE] = 1.6e-4
     """Initial position learning rate, multiplied by the scene extent."""
-    means_lr_final: float = 1.6e-6
+    means_lr_final: Annotated[float, NON_NEGATIVE] = 1.6e-6
     """Final position learning rate (exponential decay over the run), multiplied by the scene extent."""
-    sh0_lr: float = 2.5e-3
+    sh0_lr: Annotated[float, NON_NEGATIVE] = 2.5e-3
     """Learning rate of the SH DC colour."""
-    shN_lr: float = 2.5e-3 / 20
+    shN_lr: Annotated[float, NON_NEGATIVE] = 2.5e-3 / 20
     """Learning rate of the higher SH coefficients."""
-    opacities_lr: float = 0.05
+    opacities_lr: Annotated[float, NON_NEGATIVE] = 0.05
     """Learning rate of the opacity logits (0.025 in the Oct-2024 INRIA update)."""
-    scales_lr: float = 5e-3
+    scales_lr: Annotated[float, NON_NEGATIVE] = 5e-3
     """Learning rate of the log-scales."""
-    quats_lr: float = 1e-3
+    quats_lr: Annotated[float, NON_NEGATIVE] = 1e-3
     """Learning rate of the rotations."""
-    eps: float = 1e-15
+    eps: Annotated[float, POSITIVE] = 1e-15
     """Adam epsilon."""
 
 

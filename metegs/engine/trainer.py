@@ -15,17 +15,23 @@ import numpy as np
 import torch
 
 from metegs import __version__
-from metegs.config import atomic_write_text, save_yaml
+from metegs.config import absolute_paths, atomic_write_text, save_yaml, write_result
 from metegs.data.dataset import Dataset
 from metegs.data.parsers.base import parse_scene
 from metegs.data.scene import SceneData
 from metegs.engine.allocator import keep_freed_memory
-from metegs.engine.checkpoint import load_checkpoint, save_checkpoint
+from metegs.engine.checkpoint import (
+    check_compatible,
+    load_checkpoint,
+    resolve_checkpoint,
+    save_checkpoint,
+    scene_signature,
+)
 from metegs.engine.config import TrainConfig
 from metegs.engine.init import random_points_in_view_overlap, scene_extent
 from metegs.engine.optim import make_optimizers, means_lr_at
 from metegs.engine.progress import TrainProgress
-from metegs.errors import ConfigError
+from metegs.errors import ConfigError, DataError, Interrupted
 from metegs.gaussians.model import GaussianModel
 from metegs.meteo import Theta
 from metegs.render import RenderSettings, make_rasterizer
@@ -81,12 +87,21 @@ class Trainer:
             scene if scene is not None else self.prepare_scene(parse_scene(config.data, config.parser, config.dataset))
         )
         self.dataset = Dataset(self.scene, config.dataset, device=self.device)
-        if not self.dataset.train_indices:
-            raise ConfigError("the scene has no training views")
+        if len(self.dataset.train_indices) < 2:
+            raise ConfigError(
+                f"{self.scene.source or 'the scene'}: {len(self.dataset.train_indices)} training view(s); 3D Gaussian "
+                "Splatting needs at least 2 views from different positions (check --dataset.test-every)"
+            )
         self.rasterizer = make_rasterizer(backend, self.device)
         self.extent = scene_extent(self.dataset.cameras[self.dataset.train_indices])
         self._random_init: bool | None = None
-        ckpt = None if config.load_checkpoint is None else load_checkpoint(config.load_checkpoint, self.device)
+        self.resumed_from: Path | None = None
+        """The checkpoint file this run continues (``load_checkpoint``), else None."""
+        ckpt = None
+        if config.load_checkpoint is not None:
+            self.resumed_from = resolve_checkpoint(config.load_checkpoint)
+            ckpt = load_checkpoint(self.resumed_from, self.device)
+            check_compatible(ckpt, self.resumed_from, config.method, self.scene_signature())
         if ckpt is not None:
             self.model = self._checkpoint_model(ckpt)
             if "random_init" in ckpt:  # older checkpoints: found again from the scene (cached triangulation)
@@ -97,6 +112,9 @@ class Trainer:
             self.decide("init", "Gaussians given (not initialised by this run)")
         else:
             self.model = self._initial_model()
+        bad = [n for n, t in self.model.params.items() if not bool(torch.isfinite(t).all())]
+        if bad:
+            raise DataError(self.scene.source, f"the initial Gaussians hold non-finite (NaN/Inf) {', '.join(bad)}")
         self.optimizers = make_optimizers(self.model.params, config.optim, self.extent)
         self.densifier = config.densify.setup(
             max_steps=config.max_steps, extent=self.extent, num_train_views=len(self.dataset.train_indices)
@@ -107,7 +125,9 @@ class Trainer:
         self.train_seconds = 0.0
         self.step_hooks: list = []
         """Called as ``hook(trainer, stats)`` after every training step (the live viewer; a hook may block to pause)."""
+        self._claim_run_dir = run_dir is None
         self.run_dir = Path(run_dir) if run_dir is not None else self._default_run_dir()
+        """The run folder; a default one is claimed (made new, never reused) when training starts."""
         self.setup_method()
         if ckpt is not None:
             self._restore_state(ckpt)
@@ -169,6 +189,32 @@ class Trainer:
         scene_name = Path(c.data).resolve().name if c.data is not None else "synthetic"
         name = c.experiment_name or datetime.now().strftime("%Y-%m-%d_%H%M%S")
         return Path(c.output_dir) / scene_name / c.method / name
+
+    def scene_signature(self) -> dict:
+        """What this run's checkpoints record of the scene (`check_compatible` compares it on resume)."""
+        return scene_signature(self.scene.parser, len(self.dataset.cameras), self.extent)
+
+    def claim_run_dir(self) -> Path:
+        """Create the default run folder, never reusing one: a folder that exists is an earlier run's. A resumed run
+        continues in the folder of its checkpoint when that is the one named; a timestamp already taken (two runs
+        started in the same second) gets the next free ``-2``, ``-3`` ... suffix; a taken ``--experiment-name`` is
+        refused. ``os.mkdir`` makes each claim atomic between processes."""
+        base = self.run_dir
+        if self.resumed_from is not None and base.resolve() in self.resumed_from.resolve().parents:
+            return base
+        base.parent.mkdir(parents=True, exist_ok=True)
+        for n in range(1, 1000):
+            folder = base if n == 1 else base.with_name(f"{base.name}-{n}")
+            try:
+                folder.mkdir()
+                return folder
+            except FileExistsError:
+                if self.config.experiment_name:
+                    raise ConfigError(
+                        f"{folder}: the run folder exists (an earlier run); choose another --experiment-name, or "
+                        "continue that run with --load-checkpoint (its checkpoints/ folder)"
+                    ) from None
+        raise ConfigError(f"{base}: 999 run folders of this name exist; choose an --experiment-name")
 
     @functools.cached_property
     def initial_points(self) -> tuple[np.ndarray, np.ndarray] | None:
@@ -296,38 +342,55 @@ class Trainer:
     def train(self) -> dict:
         """Run to ``max_steps``, evaluating and checkpointing on schedule; returns the final metrics."""
         c = self.config
-        self.run_dir.mkdir(parents=True, exist_ok=True)
-        save_yaml(c, self.run_dir / "config.yml", header={"metegs_version": __version__})
+        if self._claim_run_dir:
+            self.run_dir = self.claim_run_dir()
+            self._claim_run_dir = False
+            if self.console is not None:
+                self.console.print(f"[dim]run folder:[/] {self.run_dir}")
+        else:
+            self.run_dir.mkdir(parents=True, exist_ok=True)
+        save_yaml(self.saved_config(), self.run_dir / "config.yml", header={"metegs_version": __version__})
         split = thread_split_counts(c.backend, c.torch_threads)
         if split is not None:
             self.decide("threads", f"torch's own ops on {split[0]}, the cpu kernels on {split[1]} (torch_threads)")
         self.save_decisions()
         eval_every = int(round(c.eval_every * c.max_steps)) if c.eval_every > 0 else 0
         order = self._view_order()
-        last_good = self._latest_checkpoint() or self.save()
-        with (
-            TrainProgress(c.max_steps, start=self.step, enabled=c.progress, console=self.console) as progress,
-            thread_split(c.backend, c.torch_threads),
-        ):
-            while self.step < c.max_steps:
-                t0 = time.perf_counter()
-                stats = self.train_step(next(order))
-                self.train_seconds += time.perf_counter() - t0
-                self.step += 1
-                self._check_finite(stats, last_good)
-                progress.update(self.step, stats, len(self.model))
-                for hook in self.step_hooks:
-                    hook(self, stats)
-                if eval_every and self.step % eval_every == 0 and self.step < c.max_steps:
-                    self.record_eval(quick=True)
-                if c.checkpoint_every and self.step % c.checkpoint_every == 0:
-                    last_good = self.save()
+        last_good = self.resumed_from or self.save()
+        try:
+            with (
+                TrainProgress(c.max_steps, start=self.step, enabled=c.progress, console=self.console) as progress,
+                thread_split(c.backend, c.torch_threads),
+            ):
+                while self.step < c.max_steps:
+                    t0 = time.perf_counter()
+                    stats = self.train_step(next(order))
+                    self.train_seconds += time.perf_counter() - t0
+                    self.step += 1
+                    self._check_finite(stats, last_good)
+                    progress.update(self.step, stats, len(self.model))
+                    for hook in self.step_hooks:
+                        hook(self, stats)
+                    if eval_every and self.step % eval_every == 0 and self.step < c.max_steps:
+                        self.record_eval(quick=True)
+                    if c.checkpoint_every and self.step % c.checkpoint_every == 0:
+                        last_good = self.save()
+        except KeyboardInterrupt:
+            raise self._interrupted(last_good) from None
         self.save()
         return self.finish()
 
-    def _latest_checkpoint(self) -> Path | None:
-        found = sorted((self.run_dir / "checkpoints").glob("*.ckpt"))
-        return found[-1] if found else None
+    def _interrupted(self, last_good: Path) -> Interrupted:
+        """The error of a run stopped by Ctrl-C, after saving where it stood (if finite) to resume from."""
+        if all(bool(torch.isfinite(p).all()) for p in self.model.params.values()):
+            try:
+                last_good = self.save()
+            except KeyboardInterrupt:  # a second Ctrl-C while saving: the last scheduled checkpoint stands
+                pass
+        return Interrupted(
+            f"training interrupted at step {self.step} of {self.config.max_steps}; continue it with "
+            f"`--load-checkpoint {last_good}` (same method and scene)"
+        )
 
     def _check_finite(self, stats: dict, last_good: Path) -> None:
         """Stop with the cause and a checkpoint to resume from when the loss or a parameter is no longer finite."""
@@ -338,10 +401,16 @@ class Trainer:
         from metegs.errors import TrainingDiverged
 
         what = f"non-finite (NaN/Inf) {', '.join(bad)}" if bad else f"a non-finite loss ({loss})"
-        raise TrainingDiverged(
-            f"training diverged at step {self.step}: {what}. Resume from {last_good} "
-            "(--load-checkpoint) with lower learning rates (--optim.*-lr) or another --backend."
-        )
+        fix = "lower learning rates (--optim.*-lr) or another --backend"
+        if last_good == self.resumed_from or last_good.name != self._checkpoint_name(0):
+            advice = f"Resume from {last_good} (--load-checkpoint) with {fix}."
+        else:  # nothing learnt is worth resuming: the start itself is the checkpoint
+            advice = f"No checkpoint after the start to resume from: train again with {fix}."
+        raise TrainingDiverged(f"training diverged at step {self.step}: {what}. {advice}")
+
+    def saved_config(self):
+        """The config written to config.yml: every path absolute, so the run reopens from any folder."""
+        return absolute_paths(self.config)
 
     def save_decisions(self) -> None:
         """decisions.json: what the run chose to do or skip and why, with the weather θ when there is one."""
@@ -383,15 +452,13 @@ class Trainer:
         return try_load_lpips(self.config.lpips_net, allow_download=self.config.lpips_download, device=self.device)
 
     def finish(self) -> dict:
-        """Final evaluation; writes metrics.json, test renders and scene.ply. Returns the metrics."""
+        """Final evaluation; writes metrics.json (first: a full disk later loses no score), test renders and
+        scene.ply. Returns the metrics."""
         from metegs.gaussians.ply import save_ply
 
         m = self.record_eval(quick=False)
         idx = self.dataset.test_indices or self.dataset.train_indices
         split = "test" if self.dataset.test_indices else "train"
-        if self.config.save_renders:
-            self.save_renders(idx, split)
-        save_ply(self.model, self.run_dir / "scene.ply", comments=self._ply_comments())
         metrics = {
             "method": self.config.method,
             "scene": str(self.config.data or "synthetic"),
@@ -413,7 +480,10 @@ class Trainer:
             "per_view": m.get("per_view"),
             "history": self.history,
         }
-        atomic_write_text(self.run_dir / "metrics.json", json.dumps(metrics, indent=2))
+        write_result(self.run_dir / "metrics.json", json.dumps(metrics, indent=2))
+        if self.config.save_renders:
+            self.save_renders(idx, split)
+        save_ply(self.model, self.run_dir / "scene.ply", comments=self._ply_comments())
         return metrics
 
     def _ply_comments(self) -> list[str]:
@@ -442,13 +512,21 @@ class Trainer:
             "train_seconds": self.train_seconds,
             "random_init": self.random_init,
             "metegs_version": __version__,
+            "method": self.config.method,
+            "scene": self.scene_signature(),
             **self.extra_state(),
         }
-        return save_checkpoint(self.run_dir / "checkpoints" / f"step-{self.step:06d}.ckpt", payload)
+        return save_checkpoint(self.run_dir / "checkpoints" / self._checkpoint_name(self.step), payload)
+
+    @staticmethod
+    def _checkpoint_name(step: int) -> str:
+        return f"step-{step:06d}.ckpt"
 
     def load(self, path: Path) -> None:
         """Resume from a checkpoint: parameters (any count), optimiser moments, statistics, step."""
+        path = resolve_checkpoint(path)
         ckpt = load_checkpoint(path, self.device)
+        check_compatible(ckpt, path, self.config.method, self.scene_signature())
         self.model = self._checkpoint_model(ckpt)
         self.optimizers = make_optimizers(self.model.params, self.config.optim, self.extent)
         self._restore_state(ckpt)

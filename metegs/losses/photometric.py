@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Annotated
 
 import torch
 
 from metegs.config import InstantiateConfig
+from metegs.validate import FRACTION
 
 
 @dataclass
@@ -14,7 +16,7 @@ class PhotometricLossConfig(InstantiateConfig):
     """(1 - λ)·L1 + λ·(1 - SSIM) between a render and its photo."""
 
     _target: type = field(default_factory=lambda: PhotometricLoss, repr=False)
-    ssim_lambda: float = 0.2
+    ssim_lambda: Annotated[float, FRACTION] = 0.2
     """Weight λ of the D-SSIM term."""
 
 

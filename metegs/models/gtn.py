@@ -17,12 +17,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Annotated
 
 import torch
 from torch import nn
 
 from metegs.errors import ConfigError
 from metegs.gaussians.model import GaussianSet
+from metegs.validate import NON_NEGATIVE, Range
 
 
 @dataclass
@@ -31,19 +33,19 @@ class GTNConfig:
 
     enabled: bool = True
     """Use the GTN in the weather branch (off: the weather branch renders the scene Gaussians as they are)."""
-    position_frequencies: int = 3
+    position_frequencies: Annotated[int, NON_NEGATIVE] = 3
     """Frequencies of the positional encoding of the Gaussian position."""
-    view_frequencies: int = 10
+    view_frequencies: Annotated[int, NON_NEGATIVE] = 10
     """Frequencies of the positional encoding of the camera centre (the view)."""
-    width: int = 64
+    width: Annotated[int, Range(1)] = 64
     """Width of the hidden layers."""
-    layers: int = 3
+    layers: Annotated[int, Range(1)] = 3
     """Number of hidden ReLU layers."""
-    init_growth: float = 0.01
+    init_growth: Annotated[float, Range(0, 1, lo_open=True, hi_open=True)] = 0.01
     """Initial growth as a fraction of the allowed range: δ = 1 + (max-factor − 1)·sigmoid(raw + logit(this))."""
-    max_factor: float = 1.1
+    max_factor: Annotated[float, Range(1)] = 1.1
     """Largest growth factor of scale and rotation components."""
-    lr: float = 1e-3
+    lr: Annotated[float, NON_NEGATIVE] = 1e-3
     """Learning rate of the network."""
 
 
@@ -62,7 +64,9 @@ class GaussianTransformationNetwork(nn.Module):
     def __init__(self, config: GTNConfig, centre: torch.Tensor, extent: float):
         super().__init__()
         if not 0.0 < config.init_growth < 1.0 or not config.max_factor > 1.0:
-            raise ConfigError(f"GTN needs 0 < init-growth < 1 and max-factor > 1, got {config.init_growth}, {config.max_factor}")
+            raise ConfigError(
+                f"GTN needs 0 < init-growth < 1 and max-factor > 1, got {config.init_growth}, {config.max_factor}"
+            )
         self.config = config
         self.register_buffer("centre", centre.detach().float().reshape(3).clone())
         self.extent = max(float(extent), 1e-6)
@@ -111,6 +115,9 @@ class GaussianTransformationNetwork(nn.Module):
         """The scene Gaussians as the degraded view sees them (means, opacity and colour unchanged)."""
         ds, dr = self.factors(gaussians.means, gaussians.scales, gaussians.quats, cam_centre)
         return GaussianSet(
-            gaussians.means, gaussians.quats * dr.to(gaussians.quats), gaussians.scales * ds.to(gaussians.scales),
-            gaussians.opacities, gaussians.sh,
+            gaussians.means,
+            gaussians.quats * dr.to(gaussians.quats),
+            gaussians.scales * ds.to(gaussians.scales),
+            gaussians.opacities,
+            gaussians.sh,
         )

@@ -32,6 +32,7 @@ from metegs.cameras import Cameras
 from metegs.errors import MetegsError
 from metegs.gaussians.model import GaussianSet
 from metegs.render.base import RenderOutput, RenderSettings
+from metegs.render.build_lock import build_lock
 from metegs.render.optional import OptionalComponent
 from metegs.render.pipeline import finish_render, resolve_sh_degree
 from metegs.render.tiles import TILE_SIZE, TileBins
@@ -216,15 +217,16 @@ def _build():
         _announced.set()
         print(f"compiling the metegs CPU rasteriser (first use, ~1 min) in {build_dir} ...",
               file=sys.stderr, flush=True)
-    return cpp_extension.load(
-        name=EXTENSION_NAME,
-        sources=[str(f) for f in SOURCES],
-        extra_include_paths=[str(CSRC)],
-        extra_ldflags=ldflags,
-        extra_cflags=cflags,
-        build_directory=str(build_dir),
-        verbose=False,
-    )
+    with build_lock(build_dir):
+        return cpp_extension.load(
+            name=EXTENSION_NAME,
+            sources=[str(f) for f in SOURCES],
+            extra_include_paths=[str(CSRC)],
+            extra_ldflags=ldflags,
+            extra_cflags=cflags,
+            build_directory=str(build_dir),
+            verbose=False,
+        )
 
 
 EXTENSION = OptionalComponent(
