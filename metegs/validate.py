@@ -55,7 +55,8 @@ def flag(prefix: str, name: str) -> str:
 
 
 def check_config(config: Any, prefix: str = "") -> None:
-    """Raise ConfigError for the first field of the tree ``config`` outside its `Range` or not finite."""
+    """Raise ConfigError for the first field of the tree ``config`` (or item of a list field) outside its `Range`,
+    or a float that is not finite."""
     hints = typing.get_type_hints(type(config), include_extras=True)
     for f in dataclasses.fields(config):
         if f.name.startswith("_"):
@@ -64,12 +65,11 @@ def check_config(config: Any, prefix: str = "") -> None:
         if dataclasses.is_dataclass(value) and not isinstance(value, type):
             check_config(value, f"{prefix}{f.name.replace('_', '-')}.")
             continue
-        if not isinstance(value, (int, float)) or isinstance(value, bool):
-            continue
         ranges = [m for m in typing.get_args(hints.get(f.name)) if isinstance(m, Range)]
-        rule = ranges[0] if ranges else Range(allow_inf=False)
-        if isinstance(value, int) and not ranges:
-            continue
-        why = rule.problem(float(value))
-        if why:
-            raise ConfigError(f"{flag(prefix, f.name)} {value!r}: {why}")
+        rule = ranges[0] if ranges else Range()
+        for item in value if isinstance(value, (list, tuple)) else [value]:
+            if not isinstance(item, (int, float)) or isinstance(item, bool) or (isinstance(item, int) and not ranges):
+                continue
+            why = rule.problem(float(item))
+            if why:
+                raise ConfigError(f"{flag(prefix, f.name)} {item!r}: {why}")

@@ -12,6 +12,7 @@ import json
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
+from typing import Annotated
 
 import torch
 import tyro
@@ -23,6 +24,7 @@ from metegs.cli import run_cli
 from metegs.config import atomic_write_text
 from metegs.errors import ConfigError
 from metegs.render.select import usable_backends
+from metegs.validate import NON_NEGATIVE, Range, check_config
 
 STEAL_WARNING = 0.02
 """Share of CPU time stolen by the hypervisor above which `raster` and `step` print a note."""
@@ -34,9 +36,9 @@ class _BenchArgs:
 
     backends: list[str] | None = None
     """Backends to time (default: every registered backend usable on the device; `torch` first)."""
-    threads: int | None = None
+    threads: Annotated[int | None, Range(1)] = None
     """torch intra-op threads (default: torch's)."""
-    torch_threads: int = 0
+    torch_threads: Annotated[int, NON_NEGATIVE] = 0
     """With the `cpu` backend: threads of torch's own ops (loss, Adam, autograd) while its kernels keep `--threads`
     (0: the same; as `metegs-train --torch-threads`)."""
     device: str = "cpu"
@@ -45,6 +47,9 @@ class _BenchArgs:
     """Print the records as a JSON list instead of a table."""
     output: Path | None = None
     """Also write the JSON records to this file."""
+
+    def __post_init__(self) -> None:
+        check_config(self)
 
     def setup(self) -> list[str]:
         """Apply the thread count and start measuring steal time; -> the backends to time."""
@@ -75,7 +80,8 @@ class _BenchArgs:
             Console(stderr=True).print(
                 f"[yellow]note[/]: the hypervisor gave {100 * stolen:.0f} % of this machine's CPU time to other "
                 "machines while this ran (steal time in /proc/stat): the timings are slower and noisier than on an "
-                "idle host", highlight=False,
+                "idle host",
+                highlight=False,
             )
 
 
@@ -83,11 +89,11 @@ class _BenchArgs:
 class RasterArgs(_BenchArgs):
     """Forward and forward+backward time and peak memory of every rasteriser backend, as ratios over `torch`."""
 
-    sizes: list[int] = field(default_factory=lambda: [5000, 20000, 100000])
+    sizes: Annotated[list[int], Range(1)] = field(default_factory=lambda: [5000, 20000, 100000])
     """Numbers of Gaussians."""
     images: list[str] = field(default_factory=lambda: ["150x100", "300x200", "600x400"])
     """Image sizes as WIDTHxHEIGHT."""
-    repeats: int = 3
+    repeats: Annotated[int, Range(1)] = 3
     """Timed steps per configuration (after one warm-up step); the median is reported."""
 
 
@@ -95,13 +101,13 @@ class RasterArgs(_BenchArgs):
 class StepArgs(_BenchArgs):
     """Full training steps (render, loss, backward, Adam) on the synthetic scene: ms per step, it/s, peak RSS."""
 
-    sizes: list[int] = field(default_factory=lambda: [4000, 20000, 60000])
+    sizes: Annotated[list[int], Range(1)] = field(default_factory=lambda: [4000, 20000, 60000])
     """Numbers of Gaussians (the scene's points resampled)."""
-    width: int | None = None
+    width: Annotated[int | None, Range(8)] = None
     """Image width of the synthetic scene (default: its default, 160)."""
-    height: int | None = None
+    height: Annotated[int | None, Range(8)] = None
     """Image height of the synthetic scene (default: its default, 120)."""
-    repeats: int = 10
+    repeats: Annotated[int, Range(1)] = 10
     """Timed steps per configuration (after one warm-up step); the median is reported."""
 
 
@@ -208,7 +214,9 @@ def raster(args: RasterArgs) -> list[dict]:
     try:
         images = [tuple(int(v) for v in s.lower().split("x")) for s in args.images]
     except ValueError:
-        raise ConfigError(f"--images: expected WIDTHxHEIGHT, got {args.images}") from None
+        images = []
+    if not images or any(len(wh) != 2 or min(wh) < 1 for wh in images):
+        raise ConfigError(f"--images: expected WIDTHxHEIGHT with sizes of at least 1 pixel, got {args.images}")
     console = Console(stderr=True)
     console.print(
         f"torch {torch.__version__}, {torch.get_num_threads()} threads, device {device}; backends {', '.join(backends)}"
@@ -245,8 +253,19 @@ def raster(args: RasterArgs) -> list[dict]:
     table = _table(
         "rasteriser: forward / forward+backward (median ms), speed-up over torch, multiples of the arithmetic floor "
         "at the research note's peak (330 GFLOP/s) and at this machine's peak measured between the steps, peak memory",
-        ("backend", "N", "image", "pairs", "fwd ms", "fwd+bwd ms", "x torch (f+b)", "x floor (f+b)",
-         "x floor here (f+b)", "peak GFLOP/s here", "peak MB"),
+        (
+            "backend",
+            "N",
+            "image",
+            "pairs",
+            "fwd ms",
+            "fwd+bwd ms",
+            "x torch (f+b)",
+            "x floor (f+b)",
+            "x floor here (f+b)",
+            "peak GFLOP/s here",
+            "peak MB",
+        ),
     )
     return args.report(records, table, row)
 

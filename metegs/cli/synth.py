@@ -17,6 +17,7 @@ import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
 import tyro
@@ -26,6 +27,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from metegs.cli import run_cli
 from metegs.data.config import DatasetConfig
 from metegs.errors import ConfigError, DataError
+from metegs.validate import NON_NEGATIVE, POSITIVE, check_config
 
 
 @dataclass
@@ -71,20 +73,20 @@ class SynthArgs:
     default); the fog of rain+fog includes the rain's own veil."""
     seed: int = 0
     """Seed of the rain and lens drops (view v draws from (seed, v))."""
-    metres_per_unit: float | None = None
+    metres_per_unit: Annotated[float | None, POSITIVE] = None
     """Metres per scene unit; none: the scene's metric scale, else a guess that puts the median depth at
     --assumed-depth-m (printed)."""
-    assumed_depth_m: float = 4.0
+    assumed_depth_m: Annotated[float, POSITIVE] = 4.0
     """Median scene depth assumed for scenes without a metric scale, m (LLFF, COLMAP)."""
-    exposure_s: float | None = None
+    exposure_s: Annotated[float | None, POSITIVE] = None
     """Exposure time of the views, s (sets streak length); none: the cameras', else 1/60."""
-    capture_width_px: int = 1920
+    capture_width_px: Annotated[int, NON_NEGATIVE] = 1920
     """Width of the photos as the camera took them (streak visibility depends on the sensor's resolution, not
     the dataset's); 0: the dataset's stored width."""
-    rain_far_m: float | None = None
+    rain_far_m: Annotated[float | None, POSITIVE] = None
     """Fixed far depth of rain streaks, m; none: where a streak's contrast falls below two 8-bit levels
     (small images see few streaks by that rule)."""
-    preview_views: int = 4
+    preview_views: Annotated[int, NON_NEGATIVE] = 4
     """Number of views on the contact sheet."""
     overwrite: bool = False
     """Replace an existing output folder."""
@@ -93,6 +95,9 @@ class SynthArgs:
     dataset: DatasetConfig = field(default_factory=DatasetConfig)
     """Options of the data parsers (the synthetic scene's size, the split); with --depth-from and no --data,
     the run's."""
+
+    def __post_init__(self) -> None:
+        check_config(self)
 
 
 def main(args: SynthArgs, console: Console | None = None) -> Path:

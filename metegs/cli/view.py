@@ -4,11 +4,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated
 
 import tyro
 from rich.console import Console
 
 from metegs.cli import run_cli
+from metegs.validate import Range, check_config
 
 
 @dataclass
@@ -19,7 +21,7 @@ class ViewArgs:
     """Run folder (holds config.yml and checkpoints/)."""
     host: str = "127.0.0.1"
     """Address to bind; 0.0.0.0 exposes the viewer to the network (deliberately)."""
-    port: int = 7007
+    port: Annotated[int, Range(0, 65535)] = 7007
     """Port (the next free one when it is taken)."""
     checkpoint: Path | None = None
     """Checkpoint to show (default: the latest)."""
@@ -27,10 +29,13 @@ class ViewArgs:
     """Show the Gaussians of this PLY file instead of a checkpoint."""
     device: str | None = None
     """Torch device (default: the run's)."""
-    max_side: int = 1024
+    max_side: Annotated[int, Range(16)] = 1024
     """Longest side of a full-resolution frame, px."""
     output_dir: Path | None = None
     """Where exports go (default: RUN_DIR/viewer)."""
+
+    def __post_init__(self) -> None:
+        check_config(self)
 
 
 def main(args: ViewArgs, block: bool = True):

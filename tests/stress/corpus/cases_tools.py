@@ -1,0 +1,258 @@
+"""The other commands' inputs: metegs-bench, metegs-synth, metegs-process-images, metegs-view options."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+from corpus.harness import Case, Result, trained_run
+
+SYNTH_TINY = ["--dataset.synthetic.width", "32", "--dataset.synthetic.height", "24",
+              "--dataset.synthetic.num-views", "3", "--dataset.synthetic.num-points", "100", "--preview-views", "0"]  # fmt: skip
+
+
+def _file(folder, name, text):
+    path = Path(folder) / name
+    path.write_text(text)
+    return path
+
+
+def _suite(folder, text):
+    return ["suite", _file(folder, "suite.yaml", text), "--output", Path(folder) / "bench"]
+
+
+def _synth(folder, *extra, output="rainy"):
+    return ["--output", Path(folder) / output, *SYNTH_TINY, *extra]
+
+
+def _dead_pid() -> int:
+    done = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    return int(done.stdout)
+
+
+def _synth_after_killed_one(folder):
+    """A synth output whose previous writer was killed mid-way (kill -9): its staging folder is still there."""
+    stale = Path(folder) / f".rainy.partial-{_dead_pid()}"
+    (stale / "images").mkdir(parents=True)
+    return _synth(folder, "--precip-mm-h", "10")
+
+
+def _synthesised(result: Result) -> None:
+    out = result.folder / "rainy"
+    assert len(list((out / "images").glob("*"))) == 3 and (out / "weather.json").is_file()
+    assert not [p for p in result.folder.iterdir() if ".partial-" in p.name], "a staging folder was left behind"
+
+
+def _existing_output(folder):
+    (Path(folder) / "rainy").mkdir()
+    (Path(folder) / "rainy" / "keep.txt").write_text("earlier work")
+    return _synth(folder)
+
+
+def _kept(result: Result) -> None:
+    assert (result.folder / "rainy/keep.txt").read_text() == "earlier work"
+
+
+def _photos(folder, n=0):
+    path = Path(folder) / "photos"
+    path.mkdir()
+    return path
+
+
+def _blocker(folder):
+    return _file(folder, "blocker", "a file where a folder is expected")
+
+
+SUITE_SCENE = "name: t\nscenes:\n  - name: s\n    data: synthetic\n"
+
+CASES = [
+    # metegs-bench
+    Case(
+        "bench-suite-missing-file",
+        "metegs-bench",
+        lambda f: ["suite", "missing.yaml"],
+        "clear",
+        match=r"missing\.yaml: suite file not found",
+    ),  # fmt: skip
+    Case("bench-suite-broken-yaml", "metegs-bench", lambda f: _suite(f, "scenes: [\n"), "clear", match=r"suite\.yaml"),
+    Case(
+        "bench-suite-unknown-key",
+        "metegs-bench",
+        lambda f: _suite(f, "nonsense: 1\n"),
+        "clear",
+        match=r"suite\.yaml: unknown key\(s\) nonsense",
+    ),  # fmt: skip
+    Case(
+        "bench-suite-empty",
+        "metegs-bench",
+        lambda f: _suite(f, "name: t\n"),
+        "clear",
+        match=r"suite\.yaml: a suite needs at least one scene",
+    ),  # fmt: skip
+    Case(
+        "bench-suite-method-not-a-mapping",
+        "metegs-bench",
+        lambda f: _suite(f, SUITE_SCENE + "methods: [nope]\n"),
+        "clear",
+        match=r"suite\.yaml: methods\[0\]",
+    ),  # fmt: skip
+    Case(
+        "bench-suite-output-under-a-file",
+        "metegs-bench",
+        lambda f: ["suite", "--quick", "--output", _blocker(f) / "x"],
+        "clear",
+        match=r"blocker",
+    ),  # fmt: skip
+    Case(
+        "bench-raster-negative-size",
+        "metegs-bench",
+        lambda f: ["raster", "--sizes", "-5"],
+        "clear",
+        match=r"--sizes -5",
+    ),  # fmt: skip
+    Case(
+        "bench-raster-zero-image",
+        "metegs-bench",
+        lambda f: ["raster", "--images", "0x0"],
+        "clear",
+        match=r"--images.*0x0",
+    ),  # fmt: skip
+    Case(
+        "bench-raster-bad-image",
+        "metegs-bench",
+        lambda f: ["raster", "--images", "wide"],
+        "clear",
+        match=r"--images.*wide",
+    ),  # fmt: skip
+    Case(
+        "bench-raster-zero-repeats",
+        "metegs-bench",
+        lambda f: ["raster", "--repeats", "0"],
+        "clear",
+        match=r"--repeats 0",
+    ),  # fmt: skip
+    Case(
+        "bench-raster-zero-threads",
+        "metegs-bench",
+        lambda f: ["raster", "--threads", "0"],
+        "clear",
+        match=r"--threads 0",
+    ),  # fmt: skip
+    Case(
+        "bench-raster-unknown-backend",
+        "metegs-bench",
+        lambda f: ["raster", "--backends", "vulkan", "--sizes", "10", "--images", "8x8"],
+        "clear",
+        match=r"vulkan",
+    ),  # fmt: skip
+    Case("bench-step-zero-size", "metegs-bench", lambda f: ["step", "--sizes", "0"], "clear", match=r"--sizes 0"),
+    Case("bench-step-tiny-width", "metegs-bench", lambda f: ["step", "--width", "2"], "clear", match=r"--width 2"),
+    Case(
+        "bench-step-negative-torch-threads",
+        "metegs-bench",
+        lambda f: ["step", "--torch-threads", "-1"],
+        "clear",
+        match=r"--torch-threads -1",
+    ),  # fmt: skip
+    # metegs-synth
+    Case("synth-tiny", "metegs-synth", lambda f: _synth(f, "--precip-mm-h", "10"), "correct", check=_synthesised),
+    Case("synth-after-a-killed-synth", "metegs-synth", _synth_after_killed_one, "correct", check=_synthesised),
+    Case("synth-output-exists", "metegs-synth", _existing_output, "clear", match=r"rainy exists", check=_kept),
+    Case(
+        "synth-unknown-kind", "metegs-synth", lambda f: _synth(f, "--kinds", "snow"), "clear", match=r"kinds='snow'"
+    ),  # fmt: skip
+    Case(
+        "synth-zero-exposure",
+        "metegs-synth",
+        lambda f: _synth(f, "--exposure-s", "0"),
+        "clear",
+        match=r"--exposure-s 0",
+    ),  # fmt: skip
+    Case(
+        "synth-negative-capture-width",
+        "metegs-synth",
+        lambda f: _synth(f, "--capture-width-px", "-1"),
+        "clear",
+        match=r"--capture-width-px -1",
+    ),  # fmt: skip
+    Case(
+        "synth-nan-precipitation",
+        "metegs-synth",
+        lambda f: _synth(f, "--precip-mm-h", "nan"),
+        "clear",
+        match=r"--precip-mm-h nan",
+    ),  # fmt: skip
+    Case(
+        "synth-negative-metres-per-unit",
+        "metegs-synth",
+        lambda f: _synth(f, "--metres-per-unit", "-3"),
+        "clear",
+        match=r"--metres-per-unit -3",
+    ),  # fmt: skip
+    Case(
+        "synth-tiny-scene-width",
+        "metegs-synth",
+        lambda f: _synth(f, "--dataset.synthetic.width", "0"),
+        "clear",
+        match=r"--dataset\.synthetic\.width 0",
+    ),  # fmt: skip
+    Case(
+        "synth-missing-data",
+        "metegs-synth",
+        lambda f: _synth(f, "--data", "no-such-scene"),
+        "clear",
+        match=r"no-such-scene",
+    ),  # fmt: skip
+    Case(
+        "synth-depth-from-not-a-run",
+        "metegs-synth",
+        lambda f: _synth(f, "--depth-from", f),
+        "clear",
+        match=r"config\.yml",
+    ),  # fmt: skip
+    Case(
+        "synth-output-under-a-file",
+        "metegs-synth",
+        lambda f: ["--output", _blocker(f) / "rainy", *SYNTH_TINY],
+        "clear",
+        match=r"blocker",
+    ),  # fmt: skip
+    # metegs-process-images
+    Case(
+        "process-images-missing-folder",
+        "metegs-process-images",
+        lambda f: ["no-photos", Path(f) / "out"],
+        "clear",
+        match=r"no-photos: photo folder does not exist",
+    ),  # fmt: skip
+    Case(
+        "process-images-empty-folder",
+        "metegs-process-images",
+        lambda f: [_photos(f), Path(f) / "out"],
+        "clear",
+        match=r"photos: no photos found",
+    ),  # fmt: skip
+    Case(
+        "process-images-output-exists",
+        "metegs-process-images",
+        lambda f: [_photos(f), os.makedirs(Path(f) / "out") or Path(f) / "out"],
+        "clear",
+        match=r"out exists",
+    ),  # fmt: skip
+    Case(
+        "process-images-folder-is-a-file",
+        "metegs-process-images",
+        lambda f: [_blocker(f), Path(f) / "out"],
+        "clear",
+        match=r"blocker",
+    ),  # fmt: skip
+    # metegs-view options (refused before a server starts)
+    Case("view-port-out-of-range", "metegs-view", lambda f: [f, "--port", "99999"], "clear", match=r"--port 99999"),
+    Case("view-max-side-zero", "metegs-view", lambda f: [f, "--max-side", "0"], "clear", match=r"--max-side 0"),
+    Case("view-not-a-run", "metegs-view", lambda f: [f], "clear", match=r"config\.yml.*not a metegs run folder"),
+    Case(
+        "view-missing-ply", "metegs-view", lambda f: [trained_run(f), "--ply", "none.ply"], "clear", match=r"none\.ply"
+    ),  # fmt: skip
+]
