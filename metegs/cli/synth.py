@@ -27,7 +27,8 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from metegs.cli import run_cli
 from metegs.data.config import DatasetConfig
 from metegs.errors import ConfigError, DataError
-from metegs.validate import NON_NEGATIVE, POSITIVE, check_config
+from metegs.meteo import limits
+from metegs.validate import NON_NEGATIVE, POSITIVE, Range, check_config
 
 
 @dataclass
@@ -60,13 +61,13 @@ class SynthArgs:
     """Reader options as KEY=VALUE (e.g. precip_column=RAIN)."""
     station: str | None = None
     """Station, for records holding several."""
-    precip_mm_h: float | None = None
+    precip_mm_h: Annotated[float | None, Range(0, limits.MAX_PRECIP_RATE_MM_H)] = None
     """Explicit precipitation rate, mm/h (instead of a record)."""
-    visibility_m: float | None = None
+    visibility_m: Annotated[float | None, Range(limits.MIN_VISIBILITY_M)] = None
     """Visibility, m: explicit, or replacing the record's (PRSA records have none)."""
-    wind_speed_m_per_s: float | None = None
+    wind_speed_m_per_s: Annotated[float | None, Range(0, limits.MAX_WIND_M_S)] = None
     """Explicit 10-m wind speed, m/s."""
-    wind_dir_deg: float | None = None
+    wind_dir_deg: Annotated[float | None, Range(0, 360)] = None
     """Explicit direction the wind blows from, degrees true."""
     kinds: str = "rain+fog"
     """Weather to add: rain, fog or rain+fog; append +drops for lens drops when it rains (θ's count, else a

@@ -568,6 +568,8 @@ def theta_from_values(
             raise ConfigError(f"{name} must be a finite, non-negative number, got {value}")
     if visibility_m is not None and (not math.isfinite(visibility_m) or visibility_m <= 0):
         raise ConfigError(f"visibility_m must be a positive number, got {visibility_m}")
+    if wind_dir_deg_from is not None and not math.isfinite(wind_dir_deg_from):
+        raise ConfigError(f"wind_dir_deg_from must be a finite number of degrees, got {wind_dir_deg_from}")
     config = config or MappingConfig()
     fog_active = fog_kind is not None
     if not fog_active and visibility_m is not None and visibility_m < MIST_LIMIT_M:

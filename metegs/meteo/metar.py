@@ -14,7 +14,7 @@ import re
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 
-from metegs.meteo import units
+from metegs.meteo import limits, units
 from metegs.meteo.weather_codes import PresentWeather, parse_weather_token
 
 
@@ -66,7 +66,7 @@ _WIND = re.compile(r"^(\d{3}|VRB|///)(\d{2,3}|//)(?:G(\d{2,3}))?(KT|MPS|KMH)$")
 _WIND_VAR = re.compile(r"^\d{3}V\d{3}$")
 _VIS_M = re.compile(r"^(\d{4})(NDV)?$")
 _VIS_DIR = re.compile(r"^\d{4}(N|NE|E|SE|S|SW|W|NW)$")
-_VIS_SM = re.compile(r"^([MP])?(\d+)?(?:(\d)/(\d{1,2}))?SM$")
+_VIS_SM = re.compile(r"^([MP])?(\d+)?(?:(\d)/([1-9]\d?))?SM$")
 _TREND = ("TEMPO", "BECMG", "NOSIG", "INTER", "PROB30", "PROB40")
 _WHOLE = re.compile(r"^\d$")
 
@@ -140,7 +140,7 @@ def _decode_body(body: list[str], r: MetarReport) -> int:
             if metres >= 9999:
                 r.visibility_m, r.visibility_at_least = 10000.0, True
             elif metres == 0:
-                r.visibility_m, r.visibility_below = 50.0, True
+                r.visibility_m, r.visibility_below = limits.ZERO_VISIBILITY_M, True
             else:
                 r.visibility_m = metres
             decoded += 1

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import io
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,6 +28,7 @@ from metegs.meteo import (
     theta_from_values,
 )
 from metegs.meteo.aggregate import FOG_LIMIT_M, MIST_LIMIT_M
+from metegs.meteo.readers.base import decode_text
 from metegs.meteo.storm import STORM_READER_OPTIONS
 
 PRSA_COLUMNS = ("year", "month", "day", "hour", "RAIN", "wd", "WSPM", "station")
@@ -37,8 +39,11 @@ def is_prsa_csv(path: Path) -> bool:
     """True for a csv whose header has the UCI Beijing PRSA columns."""
     if Path(path).suffix.lower() != ".csv" or not Path(path).is_file():
         return False
-    with open(path, encoding="utf-8", errors="replace", newline="") as f:
-        header = next(csv.reader(f), [])
+    try:  # the encodings the readers accept (a spreadsheet's UTF-16 "Unicode text" too)
+        text = decode_text(Path(path), Path(path).read_bytes()[:65536], errors="replace")
+    except DataError:
+        return False
+    header = next(csv.reader(io.StringIO(text)), [])
     return all(c in [h.strip() for h in header] for c in PRSA_COLUMNS)
 
 

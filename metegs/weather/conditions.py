@@ -5,13 +5,15 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import torch
 
 from metegs.cameras import Cameras
-from metegs.errors import ConfigError
-from metegs.meteo import CameraSpec, Theta
+from metegs.errors import ConfigError, MetegsError
+from metegs.meteo import CameraSpec, Theta, limits, parse_options, parse_time
+from metegs.meteo.units import parse_duration_s
+from metegs.validate import POSITIVE, Range, check_config
 
 DEFAULT_EXPOSURE_S = 1.0 / 60.0
 """Exposure time assumed for cameras that do not say theirs, s."""
@@ -35,21 +37,36 @@ class ConditionsConfig:
     """Aggregation window around the capture time."""
     agg: Literal["mean", "max", "min"] = "max"
     """Aggregation of the rate over the window."""
-    precip_mm_h: float | None = None
-    """Explicit precipitation rate, mm/h (instead of a record)."""
-    visibility_m: float | None = None
-    """Visibility, m: explicit, or replacing the record's (records such as PRSA have none)."""
-    wind_speed_m_s: float | None = None
-    """Explicit wind speed, m/s (with --conditions.precip-mm-h)."""
-    wind_dir_deg: float | None = None
-    """Explicit direction the wind blows from, degrees clockwise from north (with --conditions.precip-mm-h)."""
-    exposure_s: float | None = None
-    """Exposure time, s; None: the dataset's (the nerfstudio ``metegs`` block), else 1/60 s."""
-    metres_per_unit: float | None = None
+    precip_mm_h: Annotated[float | None, Range(0, limits.MAX_PRECIP_RATE_MM_H)] = None
+    """Explicit precipitation rate, mm/h (instead of a record); at most 2400, 40 mm a minute, above the world record."""
+    visibility_m: Annotated[float | None, Range(limits.MIN_VISIBILITY_M)] = None
+    """Visibility, m: explicit, or replacing the record's (records such as PRSA have none); at least 1."""
+    wind_speed_m_s: Annotated[float | None, Range(0, limits.MAX_WIND_M_S)] = None
+    """Explicit wind speed, m/s (with --conditions.precip-mm-h); at most 120, above the strongest gust measured."""
+    wind_dir_deg: Annotated[float | None, Range(0, 360)] = None
+    """Explicit direction the wind blows from, degrees clockwise from north, 0-360 (with --conditions.precip-mm-h)."""
+    exposure_s: Annotated[float | None, Range(0, 3600, lo_open=True)] = None
+    """Exposure time, s (at most an hour); None: the dataset's (the nerfstudio ``metegs`` block), else 1/60 s."""
+    metres_per_unit: Annotated[float | None, POSITIVE] = None
     """Metres per scene unit for the weather; None: the scene's own scale (metric scenes), else 1."""
-    capture_width_px: int = 1920
+    capture_width_px: Annotated[int, Range(0, 100_000)] = 1920
     """Width of the photos as the camera took them (streak visibility depends on the sensor's resolution,
     not the training resolution); 0: the dataset's stored width."""
+
+    def __post_init__(self) -> None:
+        """Refuse impossible values when the options are parsed, naming the flag as typed."""
+        check_config(self, "conditions.")
+        for flag, value, parse in (("window", self.window, parse_duration_s), ("time", self.time, parse_time)):
+            try:
+                if value is not None:
+                    parse(value)
+            except MetegsError as exc:
+                raise ConfigError(f"--conditions.{flag}: {exc}") from None
+        parse_options(self.set, "--conditions.set")
+        if self.precip_mm_h is None and (self.wind_speed_m_s is not None or self.wind_dir_deg is not None):
+            raise ConfigError("--conditions.wind-* go with --conditions.precip-mm-h (explicit values), not a record")
+        if self.record is None and (self.reader is not None or self.set or self.station is not None):
+            raise ConfigError("--conditions.reader/--conditions.set/--conditions.station need --conditions.record")
 
 
 def camera_spec(
@@ -109,13 +126,7 @@ def theta_for_cameras(config: ConditionsConfig, cameras: Cameras, metres_per_uni
             1, spec, config.precip_mm_h, config.visibility_m, config.wind_speed_m_s or 0.0, config.wind_dir_deg
         )
     else:
-        if config.wind_speed_m_s is not None or config.wind_dir_deg is not None:
-            raise ConfigError("--conditions.wind-* go with --conditions.precip-mm-h (explicit values), not a record")
-        from metegs.meteo import parse_options
-
         times = [config.time] if config.time else None
-        if config.record is None and (config.reader is not None or config.set or config.station is not None):
-            raise ConfigError("--conditions.reader/--conditions.set/--conditions.station need --conditions.record")
         plan = plan_from_record(
             1,
             spec,

@@ -85,8 +85,8 @@ def test_bad_time_and_short_row(tmp_path):
     with pytest.raises(DataError, match=r"line 2, field 'time': cannot read time 'yesterday'"):
         read_observations(path, reader="csv", precip_period="1h", **CSV_OPTS)
     path = write_csv(tmp_path, ["2024-01-01T00:00Z,0"])
-    with pytest.warns(MeteoWarning, match="line 2: 2 fields, the header has 3"):
-        assert len(read_observations(path, reader="csv", precip_period="1h", **CSV_OPTS)) == 0
+    with pytest.raises(DataError, match=r"none of its 1 records can be used \(line 2: 2 fields, the header has 3\)"):
+        read_observations(path, reader="csv", precip_period="1h", **CSV_OPTS)
 
 
 def test_unknown_column_and_option(tmp_path):

@@ -7,7 +7,7 @@ from typing import Any
 
 from metegs.errors import ConfigError, DataError
 from metegs.meteo.observations import ObservationTable
-from metegs.meteo.readers.base import MeteoWarning, ObservationReader, Problems
+from metegs.meteo.readers.base import MeteoWarning, ObservationReader, Problems, decode_text
 from metegs.registry import registry
 
 __all__ = ["MeteoWarning", "ObservationReader", "Problems", "detect_reader", "parse_options", "read_observations"]
@@ -21,7 +21,7 @@ def detect_reader(path: str | Path) -> str:
     if not path.is_file():
         raise DataError(path, "file does not exist" if not path.exists() else "is not a file")
     with open(path, "rb") as f:
-        head = f.read(_HEAD_BYTES).decode("utf-8", errors="replace")
+        head = decode_text(path, f.read(_HEAD_BYTES), errors="replace")
     candidates = []
     for entry in registry("meteo_reader").entries():
         cls = entry.load()

@@ -7,12 +7,15 @@ mistyped options fail with a ConfigError that lists the valid ones.
 
 Bad input: a value that cannot be used raises ``DataError`` naming the file, the line and the field
 (``on_error="raise"``, the default), or with ``on_error="skip"`` the record is skipped and counted;
-records that are skipped by rule (an unparsable METAR, a duplicate) are always counted. Each file gives
+records that are skipped by rule (an unparsable METAR, a duplicate) are always counted. A value beyond the
+plausibility bounds of `metegs.meteo.limits` (more rain than ever measured, visibility under 1 m, wind over
+120 m/s) is bad input too. Files are decoded by `read_text`: UTF-8, or UTF-16 with a byte-order mark. Each file gives
 at most one ``MeteoWarning`` that states how many records were skipped and shows the first reasons.
 """
 
 from __future__ import annotations
 
+import codecs
 import dataclasses
 import math
 import re
@@ -24,6 +27,7 @@ from pathlib import Path
 from typing import Any, ClassVar, Literal
 
 from metegs.errors import ConfigError, DataError
+from metegs.meteo import limits
 from metegs.meteo.observations import Observation, ObservationTable, epoch_s
 
 
@@ -254,16 +258,99 @@ def order_records(records: list[Observation], problems: Problems, time_order: st
     return out
 
 
-def read_text(path: Path) -> str:
-    """The file as text (UTF-8, undecodable bytes replaced); a DataError if it cannot be read."""
+_MAGIC = {
+    b"\x89PNG": "a PNG image",
+    b"\xff\xd8\xff": "a JPEG image",
+    b"GIF8": "a GIF image",
+    b"%PDF": "a PDF document",
+    b"PK\x03\x04": "a ZIP archive (an .xlsx workbook is one: export the sheet as CSV)",
+    b"\x1f\x8b": "gzip-compressed (decompress it first)",
+}
+_TEXT_CONTROLS = frozenset(b"\t\n\r\x0b\x0c\x01\x03")  # SOH/ETX frame WMO bulletins
+
+
+def decode_text(path: Path, data: bytes, errors: str = "strict") -> str:
+    """``data`` as LF-ended text (UTF-8, or UTF-8/16 with a byte-order mark); DataError if empty, binary or not UTF-8."""
+    if not data.strip():
+        raise DataError(path, "file is empty")
+    for bom, codec, name in (
+        (codecs.BOM_UTF8, "utf-8-sig", "UTF-8"),
+        (codecs.BOM_UTF16_LE, "utf-16", "UTF-16"),
+        (codecs.BOM_UTF16_BE, "utf-16", "UTF-16"),
+    ):
+        if data.startswith(bom):
+            try:
+                return _unix_newlines(data.decode(codec, errors))
+            except UnicodeDecodeError as exc:
+                raise DataError(
+                    path, f"starts with a {name} byte-order mark but byte {exc.start} is not {name}"
+                ) from None
+    for magic, what in _MAGIC.items():
+        if data.startswith(magic):
+            raise DataError(path, f"is {what}, not a text record")
+    head = data[:8192]
+    if max(head[0::2].count(0), head[1::2].count(0)) > len(head) // 4:
+        raise DataError(path, "looks like UTF-16 text without a byte-order mark: save it as UTF-8")
+    if sum(b < 32 and b not in _TEXT_CONTROLS or b == 127 for b in head) > 0.05 * len(head):
+        raise DataError(path, "is a binary file, not a text record")
+    try:
+        return _unix_newlines(data.decode("utf-8", errors))
+    except UnicodeDecodeError as exc:
+        line = data.count(b"\n", 0, exc.start) + 1
+        raise DataError(
+            path,
+            f"line {line}: byte 0x{data[exc.start]:02x} is not UTF-8 text: save the file as UTF-8 "
+            "(it may be Latin-1 / Windows-1252)",
+        ) from None
+
+
+def _unix_newlines(text: str) -> str:
+    """CRLF (and CR CR LF) line ends as LF; a file with CR line ends only (classic Mac) too. A CR inside a line stays."""
+    text = re.sub(r"\r+\n", "\n", text)
+    return text.replace("\r", "\n") if "\n" not in text else text
+
+
+def read_text(path: Path, errors: str = "strict") -> str:
+    """The file as text (see `decode_text`); a DataError if it is missing, unreadable, empty or not text."""
     if not path.exists():
         raise DataError(path, "file does not exist")
     if not path.is_file():
         raise DataError(path, "is not a file")
     try:
-        return path.read_bytes().decode("utf-8", errors="replace")
+        data = path.read_bytes()
     except OSError as exc:
         raise DataError(path, f"cannot read: {exc}") from exc
+    return decode_text(path, data, errors)
+
+
+def implausible(r: Observation) -> RecordError | None:
+    """The first value of ``r`` beyond the bounds of `metegs.meteo.limits` as a RecordError, or None."""
+    for acc in r.precip_accums:
+        most = limits.max_precip_rate_mm_h(acc.period_h) * acc.period_h
+        if acc.period_h > 0 and acc.amount_mm > most:
+            return RecordError(
+                acc.label or "precipitation",
+                f"{acc.amount_mm:g} mm in {acc.period_h:g} h is more rain than ever measured (at most {most:g} mm); "
+                "check the value and its unit",
+            )
+    rate, period = r.precip_rate_mm_per_h, r.precip_rate_period_h
+    if rate is not None and rate > (most := limits.max_precip_rate_mm_h(period)):
+        return RecordError(
+            "precipitation rate",
+            f"{rate:g} mm/h is more rain than ever measured (at most {most:g} mm/h"
+            f"{f' over {period:g} h' if period else ''}); check the value and its unit",
+        )
+    checks = (
+        ("visibility", r.visibility_m, limits.MIN_VISIBILITY_M, math.inf, "m"),
+        ("wind speed", r.wind_speed_m_per_s, 0.0, limits.MAX_WIND_M_S, "m/s"),
+        ("wind gust", r.wind_gust_m_per_s, 0.0, limits.MAX_WIND_M_S, "m/s"),
+        ("wind direction", r.wind_dir_deg_from, 0.0, 360.0, "degrees"),
+    )
+    for field, value, low, high, unit in checks:
+        why = None if value is None else limits.range_problem(value, low, high, unit)
+        if why:
+            return RecordError(field, f"{why} (not a plausible {field}; check the value and its unit)")
+    return None
 
 
 class ObservationReader:
@@ -287,13 +374,30 @@ class ObservationReader:
         path = Path(path)
         problems = Problems(path, opts.on_error)
         records, total, notes = self._read(path, opts, problems)
+        records = [r for r in records if self._plausible(r, problems)]
         records = order_records(records, problems, opts.time_order)
         if opts.station is not None:
             records = [r for r in records if r.station == opts.station]
             if not records:
                 raise DataError(path, f"no records of station {opts.station!r}")
+        if not records:
+            raise DataError(
+                path,
+                "holds no records"
+                if not total
+                else f"none of its {total} records can be used ({'; '.join(problems.examples)})",
+            )
         problems.warn(total)
         return ObservationTable(records, str(path), self.name, problems.count, notes)
+
+    @staticmethod
+    def _plausible(r: Observation, problems: Problems) -> bool:
+        """False (after raising or counting it) for a record with a value beyond `metegs.meteo.limits`."""
+        bad = implausible(r)
+        if bad is not None:
+            when = "" if r.line is not None else f"{r.time_utc:%Y-%m-%d %H:%M}Z: "
+            problems.fail(r.line, bad.field, when + bad.message)
+        return bad is None
 
     def _read(self, path: Path, opts: Any, problems: Problems) -> tuple[list[Observation], int, list[str]]:
         """Records (any order), the number of records seen, and notes."""

@@ -13,6 +13,7 @@ from __future__ import annotations
 import csv
 import io
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass
 from datetime import datetime, timedelta, timezone
 from pathlib import Path
@@ -96,15 +97,10 @@ class CsvReader(ObservationReader):
         except ConfigError as exc:
             raise DataError(path, f"option error: {exc}") from exc
         text = read_text(path)
-        lines = text.splitlines()
-        if not lines:
-            raise DataError(path, "file is empty")
-        delimiter = opts.delimiter or _sniff_delimiter(lines[0])
+        delimiter = opts.delimiter or _sniff_delimiter(text.split("\n", 1)[0])
         reader = csv.reader(io.StringIO(text), delimiter=delimiter)
-        try:
-            header = [h.strip() for h in next(reader)]
-        except StopIteration:
-            raise DataError(path, "file is empty") from None
+        rows = _rows(reader, problems)
+        header = [h.strip() for h in next(rows, [])]
         index = {h: i for i, h in enumerate(header)}
         wanted = {
             "time_columns": list(opts.time_columns),
@@ -146,7 +142,7 @@ class CsvReader(ObservationReader):
 
         parsed: list[tuple[Observation, float | None]] = []
         total = 0
-        for row in reader:
+        for row in rows:
             line = reader.line_num
             if not row or all(not c.strip() for c in row):
                 continue
@@ -208,7 +204,7 @@ class CsvReader(ObservationReader):
     def _attach_precip(
         self, parsed, opts: CsvOptions, path: Path, problems: Problems, notes: list[str]
     ) -> list[Observation]:
-        if opts.precip_column is None:
+        if opts.precip_column is None or not parsed:
             return [Observation(**fields) for fields, _ in parsed]
         if opts.precip_period is not None:
             period_h = units.parse_duration_s(opts.precip_period) / 3600.0
@@ -265,6 +261,18 @@ class CsvReader(ObservationReader):
                         )
                     )
         return out
+
+
+def _rows(reader, problems: Problems) -> Iterator[list[str]]:
+    """The rows of ``reader``; a line the csv module cannot split (a stray CR or NUL inside it) is bad input."""
+    while True:
+        try:
+            yield next(reader)
+        except StopIteration:
+            return
+        except csv.Error as exc:
+            why = "a stray carriage return (CR) inside the line" if "new-line" in str(exc) else str(exc)
+            problems.fail(reader.line_num, None, why)
 
 
 def _sniff_delimiter(header: str) -> str:

@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Literal
 
 from metegs.errors import DataError
+from metegs.meteo import limits
 from metegs.meteo.observations import Accumulation, Observation
 from metegs.meteo.readers.base import (
     CommonOptions,
@@ -56,7 +57,7 @@ class GhcnhReader(ObservationReader):
         return head.startswith("Station_ID|") or (path.suffix.lower() == ".psv" and "|Year|" in head[:400])
 
     def _read(self, path: Path, opts: GhcnhOptions, problems: Problems):
-        lines = read_text(path).splitlines()
+        lines = read_text(path).split("\n")
         if not lines or not lines[0].startswith("Station_ID|"):
             raise DataError(path, "line 1: expected the GHCNh header starting with 'Station_ID|'")
         header = lines[0].split("|")
@@ -89,7 +90,9 @@ class GhcnhReader(ObservationReader):
         counts: dict[str, Counter] = {}
         for _, row in rows:
             if row.get("precipitation_Report_Type", row.get("wind_speed_Report_Type", "")) == "FM15-METAR":
-                counts.setdefault(row.get("Station_ID", ""), Counter())[int(row.get("Minute", "0") or 0)] += 1
+                minute = row.get("Minute", "0")
+                if minute.isdigit():
+                    counts.setdefault(row.get("Station_ID", ""), Counter())[int(minute)] += 1
         return {st: c.most_common(1)[0][0] for st, c in counts.items()}
 
     def _observation(self, line: int, row: dict[str, str], routine: dict[str, int], problems: Problems) -> Observation:
@@ -129,11 +132,13 @@ class GhcnhReader(ObservationReader):
                 trace = row.get(f"{col}_Measurement_Code", "").startswith("2-")
                 accums.append(Accumulation(amount, float(hours), trace and amount == 0, col))
         visibility_m = None
-        at_least = False
+        at_least = below = False
         vis_km = value("visibility")
         if vis_km is not None:
             if vis_km > _MAX_VISIBILITY_KM:
                 problems.ignore_value(line, "visibility", f"{vis_km:g} km is beyond {_MAX_VISIBILITY_KM:g} km")
+            elif vis_km == 0:  # below the smallest reportable value
+                visibility_m, below = limits.ZERO_VISIBILITY_M, True
             else:
                 visibility_m = vis_km * 1000.0
                 report = row.get("visibility_Report_Type", "")
@@ -160,6 +165,7 @@ class GhcnhReader(ObservationReader):
             precip_accums=tuple(accums),
             visibility_m=visibility_m,
             visibility_at_least=at_least,
+            visibility_below=below,
             wind_speed_m_per_s=speed,
             wind_gust_m_per_s=gust,
             wind_dir_deg_from=direction,

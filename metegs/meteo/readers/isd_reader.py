@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
 
-from metegs.errors import DataError
+from metegs.meteo import limits
 from metegs.meteo.observations import Accumulation, Observation
 from metegs.meteo.readers.base import CommonOptions, ObservationReader, Problems, RecordError, read_text
 from metegs.meteo.weather_codes import weather_from_synop
@@ -47,7 +47,7 @@ class IsdReader(ObservationReader):
         records = []
         total = 0
         no_period = 0
-        for number, line in enumerate(read_text(path).splitlines(), start=1):
+        for number, line in enumerate(read_text(path).split("\n"), start=1):
             if not line.strip():
                 continue
             total += 1
@@ -61,8 +61,6 @@ class IsdReader(ObservationReader):
                 continue
             no_period += skipped_periods
             records.append(obs)
-        if total == 0:
-            raise DataError(path, "file is empty")
         notes = []
         if no_period:
             notes.append(f"{no_period} AA precipitation group(s) without a period (pp = 99) were not used")
@@ -84,19 +82,21 @@ class IsdReader(ObservationReader):
         station = f"{line[4:10]}-{line[10:15]}"
         direction = speed = None
         if line[65:69] != "9999" and line[69] not in _BAD_QUALITY:
-            speed = int(line[65:69]) / 10.0
+            speed = _number(line, 65, 69, "wind speed") / 10.0
         elif line[69] in _BAD_QUALITY:
             problems.ignore_value(number, "wind speed (columns 66-69)", f"quality code {line[69]}")
         if line[64] == "C":
             speed = 0.0 if speed is None else speed
         elif line[60:63] != "999" and line[64] != "V" and line[63] not in _BAD_QUALITY:
-            direction = float(int(line[60:63]) % 360)
-        visibility = None
+            direction = float(_number(line, 60, 63, "wind direction") % 360)
+        visibility, below = None, False
         if line[78:84] != "999999":
             if line[84] in _BAD_QUALITY:
                 problems.ignore_value(number, "visibility (columns 79-84)", f"quality code {line[84]}")
             else:
-                visibility = float(int(line[78:84]))
+                visibility = float(_number(line, 78, 84, "visibility"))
+                if visibility == 0:  # below the smallest reportable value
+                    visibility, below = limits.ZERO_VISIBILITY_M, True
         additional = ""
         if line[105:108] == "ADD":
             additional = re.split(r"REM|EQD", line[108:], maxsplit=1)[0]
@@ -135,6 +135,7 @@ class IsdReader(ObservationReader):
             station=station,
             precip_accums=tuple(accums),
             visibility_m=visibility,
+            visibility_below=below,
             wind_speed_m_per_s=speed,
             wind_dir_deg_from=direction,
             weather=weather,
@@ -142,3 +143,11 @@ class IsdReader(ObservationReader):
             line=number,
         )
         return obs, no_period
+
+
+def _number(line: str, start: int, end: int, name: str) -> int:
+    """The unsigned integer in columns ``start+1``..``end`` of ``line``; RecordError names the columns otherwise."""
+    text = line[start:end]
+    if not text.isdigit():
+        raise RecordError(f"{name} (columns {start + 1}-{end})", f"{text!r} is not a number")
+    return int(text)

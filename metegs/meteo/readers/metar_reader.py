@@ -57,7 +57,7 @@ class MetarReader(ObservationReader):
             )
         if not 1 <= opts.month <= 12:
             raise DataError(path, f"month={opts.month} is not 1-12")
-        chunks = split_bulletin(read_text(path))
+        chunks = split_bulletin(read_text(path, errors="replace"))  # bulletins carry transmission noise
         parsed: list[tuple[int, MetarReport]] = []
         for line, kind, text in chunks:
             try:

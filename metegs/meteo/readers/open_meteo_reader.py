@@ -52,6 +52,8 @@ class OpenMeteoReader(ObservationReader):
             raise DataError(path, "expected an Open-Meteo response with an 'hourly' object")
         hourly = doc["hourly"]
         units_of = doc.get("hourly_units", {}) or {}
+        if not isinstance(units_of, dict):
+            raise DataError(path, "field 'hourly_units': expected an object of unit names")
         times = hourly.get("time")
         if not isinstance(times, list):
             raise DataError(path, "field 'hourly.time': expected a list of times")
@@ -59,7 +61,12 @@ class OpenMeteoReader(ObservationReader):
         for key, values in hourly.items():
             if not isinstance(values, list) or len(values) != n:
                 raise DataError(path, f"field 'hourly.{key}': expected a list of {n} values like 'hourly.time'")
-        offset = timedelta(seconds=int(doc.get("utc_offset_seconds", 0) or 0))
+        try:
+            offset = timedelta(seconds=int(doc.get("utc_offset_seconds", 0) or 0))
+        except (TypeError, ValueError, OverflowError):
+            raise DataError(
+                path, f"field 'utc_offset_seconds': {doc['utc_offset_seconds']!r} is not a number of seconds"
+            ) from None
         unix = units_of.get("time") == "unixtime"
 
         def unit(var: str, default: str) -> str:

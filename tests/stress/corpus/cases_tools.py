@@ -45,6 +45,18 @@ def _synthesised(result: Result) -> None:
     assert not [p for p in result.folder.iterdir() if ".partial-" in p.name], "a staging folder was left behind"
 
 
+PRSA_ROWS = ['"No","year","month","day","hour","RAIN","wd","WSPM","station"'] + [
+    f'{i + 1},2024,7,1,{i},{rain},"NE",2.5,"Test"' for i, rain in enumerate([0, 4.0, 12.5, 3.0])
+]
+
+
+def _prsa_utf16(folder):
+    """A PRSA-layout record saved by a spreadsheet as "Unicode text" (UTF-16 with a byte-order mark)."""
+    path = Path(folder) / "prsa.csv"
+    path.write_bytes("\r\n".join(PRSA_ROWS).encode("utf-16"))
+    return _synth(folder, "--record", path, "--time", "2024-06-30T18:00Z", "--visibility-m", "2000")
+
+
 def _existing_output(folder):
     (Path(folder) / "rainy").mkdir()
     (Path(folder) / "rainy" / "keep.txt").write_text("earlier work")
@@ -159,6 +171,17 @@ CASES = [
     # metegs-synth
     Case("synth-tiny", "metegs-synth", lambda f: _synth(f, "--precip-mm-h", "10"), "correct", check=_synthesised),
     Case("synth-after-a-killed-synth", "metegs-synth", _synth_after_killed_one, "correct", check=_synthesised),
+    Case("synth-prsa-record-in-utf16", "metegs-synth", _prsa_utf16, "correct", check=_synthesised),
+    Case("synth-precipitation-above-world-record", "metegs-synth", lambda f: _synth(f, "--precip-mm-h", "1e9"),
+         "clear", match=r"--precip-mm-h 1000000000.0: expected a number >= 0 and <= 2400"),  # fmt: skip
+    Case("synth-visibility-below-a-metre", "metegs-synth", lambda f: _synth(f, "--visibility-m", "0.5"), "clear",
+         match=r"--visibility-m 0.5"),  # fmt: skip
+    Case("synth-infinite-wind-direction", "metegs-synth",
+         lambda f: _synth(f, "--precip-mm-h", "5", "--wind-speed-m-per-s", "3", "--wind-dir-deg", "inf"), "clear",
+         match=r"--wind-dir-deg inf"),  # fmt: skip
+    Case("synth-hurricane-beyond-record", "metegs-synth",
+         lambda f: _synth(f, "--precip-mm-h", "5", "--wind-speed-m-per-s", "500"), "clear",
+         match=r"--wind-speed-m-per-s 500"),  # fmt: skip
     Case("synth-output-exists", "metegs-synth", _existing_output, "clear", match=r"rainy exists", check=_kept),
     Case(
         "synth-unknown-kind", "metegs-synth", lambda f: _synth(f, "--kinds", "snow"), "clear", match=r"kinds='snow'"
