@@ -2,7 +2,8 @@
 
 Every image becomes RGB ``[H, W, 3]``: BGR is swapped to RGB, 16-bit images are scaled by 1/65535,
 grey images are repeated to three channels and RGBA images are composited on a white background
-(the Blender/NeRF-synthetic convention). EXIF orientation is ignored, like COLMAP does.
+(the Blender/NeRF-synthetic convention). EXIF orientation is ignored, like COLMAP does. Empty files and
+JPEG/PNG files that stop before their end marker (EOI / IEND) are refused: OpenCV would decode the part it has.
 """
 
 from __future__ import annotations
@@ -33,12 +34,61 @@ def list_images(folder: Path) -> list[Path]:
     return files
 
 
-def _read(path: Path) -> np.ndarray:
-    """Raw cv2.imread(IMREAD_UNCHANGED) result; DataError naming the file when it is missing or unreadable."""
+def _jpeg_problem(raw: bytes) -> str | None:
+    """Why a JPEG is incomplete: its segments must lead to a scan whose data ends with the EOI marker FF D9."""
+    pos = 2
+    while pos + 4 <= len(raw):
+        if raw[pos] != 0xFF:  # stray bytes between segments: skip to the next marker, as libjpeg does
+            pos = raw.find(b"\xff", pos)
+            if pos < 0:
+                break
+            continue
+        marker = raw[pos + 1]
+        if marker == 0xDA:  # start of scan: in the entropy-coded data that follows, FF D9 can only be the EOI
+            return None if raw.find(b"\xff\xd9", pos) >= 0 else "JPEG data is truncated (no end-of-image marker)"
+        if marker == 0xFF:  # fill byte
+            pos += 1
+        elif marker == 0x01 or 0xD0 <= marker <= 0xD8:  # markers without a length
+            pos += 2
+        else:
+            pos += 2 + int.from_bytes(raw[pos + 2 : pos + 4], "big")
+    return "JPEG data is truncated (it ends before the image data)"
+
+
+def _png_problem(raw: bytes) -> str | None:
+    """Why a PNG is incomplete: its chunks must lead to an IEND chunk within the file."""
+    pos = 8
+    while pos + 8 <= len(raw):
+        length, kind = int.from_bytes(raw[pos : pos + 4], "big"), raw[pos + 4 : pos + 8]
+        pos += 12 + length  # length, type, data, CRC
+        if pos > len(raw):
+            return f"PNG data is truncated (chunk {kind.decode('latin-1')!r} runs past the end of the file)"
+        if kind == b"IEND":
+            return None
+    return "PNG data is truncated (no IEND chunk)"
+
+
+def read_image_bytes(path: Path) -> bytes:
+    """The bytes of an image file; DataError naming it when it is missing, empty or a truncated JPEG/PNG."""
     path = Path(path)
     if not path.is_file():
         raise DataError(path, "image file does not exist")
-    data = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    raw = path.read_bytes()
+    problem = "empty file (0 bytes)" if not raw else None
+    if raw.startswith(b"\xff\xd8\xff"):
+        problem = _jpeg_problem(raw)
+    elif raw.startswith(b"\x89PNG\r\n\x1a\n"):
+        problem = _png_problem(raw)
+    if problem:
+        raise DataError(path, problem)
+    return raw
+
+
+def _read(path: Path) -> np.ndarray:
+    """Raw decoded image (as cv2.imread with IMREAD_UNCHANGED); DataError naming the file when it is missing,
+    truncated or unreadable."""
+    raw = read_image_bytes(path)
+    data = cv2.imdecode(np.frombuffer(raw, np.uint8), cv2.IMREAD_UNCHANGED)
     if data is None or data.size == 0:
         raise DataError(path, "cannot read image (corrupt file or unsupported format)")
     return data

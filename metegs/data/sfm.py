@@ -21,6 +21,7 @@ from typing import Literal
 import cv2
 import numpy as np
 
+from metegs.data.images import load_mask, read_image_bytes
 from metegs.errors import ConfigError, DataError
 from metegs.synth.writers import staged_output
 
@@ -95,6 +96,8 @@ def list_photos(folder: Path) -> list[str]:
     unreadable = [n for n in names if not cv2.haveImageReader(str(folder / n))]
     if unreadable:
         raise DataError(folder / unreadable[0], f"not a readable image ({len(unreadable)} unreadable in the folder)")
+    for name in names:
+        read_image_bytes(folder / name)  # refuses empty and truncated JPEG/PNG files, naming them
     return names
 
 
@@ -111,10 +114,8 @@ def stage_masks(masks: Path, names: list[str], dst: Path) -> None:
         )
     dst.mkdir(parents=True)
     for name in names:
-        mask = cv2.imread(str(by_stem[Path(name).stem]), cv2.IMREAD_GRAYSCALE)
-        if mask is None:
-            raise DataError(by_stem[Path(name).stem], "not a readable mask image")
-        cv2.imwrite(str(dst / f"{name}.png"), np.where(mask > 127, 255, 0).astype(np.uint8))
+        mask = load_mask(by_stem[Path(name).stem])  # DataError naming a missing, truncated or unreadable mask
+        cv2.imwrite(str(dst / f"{name}.png"), np.where(mask > 0.5, 255, 0).astype(np.uint8))
 
 
 def _pycolmap():

@@ -10,7 +10,9 @@ Layout written (all ``float`` = little-endian float32, one row per Gaussian, pre
 - ``opacity`` is a logit, ``scale_*`` are log standard deviations, ``rot_*`` a quaternion (w, x, y, z).
 
 The reader matches properties by name, so files from other tools (gsplat without normals, extra
-``red green blue`` uchar properties, double precision, ascii) load too.
+``red green blue`` uchar properties, double precision, ascii, big endian) load too. It refuses, naming the
+property, NaN/inf values, log-scales above `MAX_LOG_SCALE` and zero quaternions (what garbage or data in
+the wrong byte order decode to), and a vertex count that the file is too short for.
 """
 
 from __future__ import annotations
@@ -40,6 +42,8 @@ _REQUIRED = ("x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
              "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3")  # fmt: skip
 _F_REST = re.compile(r"f_rest_(\d+)$")
 _MAX_HEADER_BYTES = 1 << 20
+MAX_LOG_SCALE = 20.0
+"""Largest ``scale_*`` (log standard deviation) a PLY may hold: exp(20) ≈ 5e8 scene units."""
 
 
 def _property_names(num_rest: int) -> list[str]:
@@ -205,8 +209,13 @@ def _read_header(path: Path, f) -> _Header:
     return _Header(fmt, elements, comments, size)
 
 
-def _read_vertices(path: Path) -> np.ndarray:
-    """The ``vertex`` element as a numpy structured array (fields named as in the header)."""
+def read_ply_vertices(path: Path) -> np.ndarray:
+    """The ``vertex`` element of a PLY file as a numpy structured array [N] (fields named as in the header).
+
+    Binary data is read in the byte order the header states; the vertex count is checked against the file
+    size before anything is allocated. DataError naming the file when it is missing, malformed or truncated.
+    """
+    path = Path(path)
     if not path.is_file():
         raise DataError(path, "PLY file not found")
     with open(path, "rb") as f:
@@ -247,16 +256,45 @@ def _read_vertices(path: Path) -> np.ndarray:
                 raise DataError(path, f"PLY element {e.name!r} with list properties precedes 'vertex' (unsupported)")
             offset += e.count * np.dtype([(p, order + t) for p, t in e.props]).itemsize
         dtype = np.dtype([(pname, order + t) for pname, t in vertex.props])
-        f.seek(header.size + offset)
         need = vertex.count * dtype.itemsize
-        data = f.read(need)
-        if len(data) < need:
+        found = max(0, os.fstat(f.fileno()).st_size - header.size - offset)
+        if need > found:  # checked before reading: a header may claim far more vertices than the file holds
             raise DataError(
                 path,
-                f"PLY data truncated: {vertex.count} vertices of {dtype.itemsize} bytes need {need} bytes, "
-                f"found {len(data)}",
+                f"PLY data truncated: the header declares {vertex.count} vertices of {dtype.itemsize} bytes "
+                f"({need} bytes) but the file holds {found} bytes of vertex data",
             )
-        return np.frombuffer(data, dtype=dtype)
+        f.seek(header.size + offset)
+        return np.frombuffer(f.read(need), dtype=dtype)
+
+
+_HINT = "(a corrupt file, or data in another byte order than the header states?)"
+
+
+def check_finite(path: Path, v: np.ndarray, props: list[str]) -> None:
+    """DataError naming the first of ``props`` of the vertices ``v`` [N] with NaN or infinite values."""
+    for p in props:
+        bad = np.count_nonzero(~np.isfinite(v[p]))
+        if bad:
+            raise DataError(path, f"property '{p}' is NaN or infinite in {bad} of {len(v)} vertices {_HINT}")
+
+
+def _check_values(path: Path, v: np.ndarray, props: list[str]) -> None:
+    """DataError naming the property of ``v`` [N] with non-finite values, absurd scales or zero quaternions."""
+    check_finite(path, v, props)
+    n = len(v)
+    for p in ("scale_0", "scale_1", "scale_2"):
+        big = np.count_nonzero(v[p] > MAX_LOG_SCALE)
+        if big:
+            raise DataError(
+                path,
+                f"property '{p}' (log standard deviation) is above {MAX_LOG_SCALE:g} in {big} of {n} vertices "
+                f"(max {v[p].max():.3g}): absurd scales {_HINT}",
+            )
+    quats = np.stack([np.asarray(v[f"rot_{i}"], np.float64) for i in range(4)], axis=1)
+    zero = np.count_nonzero(np.linalg.norm(quats, axis=1) < 1e-8)
+    if zero:
+        raise DataError(path, f"properties 'rot_0'..'rot_3' are a zero quaternion in {zero} of {n} vertices {_HINT}")
 
 
 def load_ply(path: str | Path) -> GaussianModel:
@@ -269,10 +307,11 @@ def load_ply(path: str | Path) -> GaussianModel:
 
     Returns a CPU `GaussianModel` (means [N,3], log-scales [N,3], quats wxyz [N,4], opacity logits [N],
     sh0 [N,1,3], shN [N,K-1,3]). Raises `DataError` naming the file when it is missing, not a PLY, lacks
-    required properties, is truncated, or has an f_rest count that matches no SH degree.
+    required properties, is truncated, has an f_rest count that matches no SH degree, holds no vertices,
+    or when a property has NaN/inf values, a log-scale above `MAX_LOG_SCALE` or a zero quaternion.
     """
     path = Path(path)
-    v = _read_vertices(path)
+    v = read_ply_vertices(path)
     names = set(v.dtype.names or ())
     missing = [p for p in _REQUIRED if p not in names]
     if missing:
@@ -288,6 +327,9 @@ def load_ply(path: str | Path) -> GaussianModel:
         raise DataError(path, f"{m} f_rest_* properties match no SH degree (expected 3*((d+1)^2-1): 0, 9, 24, 45, ...)")
     k1 = m // 3
     n = v.shape[0]
+    if n == 0:
+        raise DataError(path, "the PLY holds no Gaussians ('element vertex 0')")
+    _check_values(path, v, [*_REQUIRED, *(f"f_rest_{i}" for i in range(m))])
 
     def cols(*props: str) -> np.ndarray:
         if not props:

@@ -137,7 +137,8 @@ def test_all_rows_non_finite_still_warns(tmp_path):
         model.params["opacities"][:] = float("nan")
     with pytest.warns(RuntimeWarning, match="dropped 3 of 3"):
         assert save_ply(model, tmp_path / "empty.ply") == 0
-    assert len(load_ply(tmp_path / "empty.ply")) == 0
+    with pytest.raises(DataError, match="no Gaussians"):  # an empty model would render black
+        load_ply(tmp_path / "empty.ply")
 
 
 def test_finite_model_does_not_warn(tmp_path):
@@ -253,3 +254,75 @@ def test_failed_write_leaves_existing_file_untouched(tmp_path, monkeypatch):
     monkeypatch.undo()
     assert path.read_bytes() == original
     assert sorted(p.name for p in tmp_path.iterdir()) == ["keep.ply"]  # no temp file left behind
+
+
+def _inria_rows(n: int, degree: int = 1, order: str = "<", seed: int = 2) -> tuple[list[tuple[str, str]], np.ndarray]:
+    """Plausible INRIA-layout properties and [n] rows (log-scales near -3, random quaternions)."""
+    rng = np.random.default_rng(seed)
+    props = [(p, "f4") for p in _inria_props(degree)]
+    rows = np.zeros(n, dtype=[(name, order + t) for name, t in props])
+    for name, _ in props:
+        rows[name] = rng.normal(size=n) + (-3.0 if name.startswith("scale") else 0.0)
+    return props, rows
+
+
+def test_huge_vertex_count_refused_before_allocating(tmp_path):
+    props, rows = _inria_rows(4)
+    path = tmp_path / "huge.ply"
+    write_custom_ply(path, props, rows)
+    path.write_bytes(path.read_bytes().replace(b"element vertex 4\n", b"element vertex 1000000000\n"))
+    with pytest.raises(DataError, match=r"huge.ply.*1000000000 vertices.*holds 4\d* bytes"):
+        load_ply(path)
+
+
+@pytest.mark.parametrize("prop", ["x", "f_dc_1", "f_rest_4", "opacity", "scale_2", "rot_0"])
+@pytest.mark.parametrize("value", [float("nan"), float("inf")])
+def test_non_finite_property_is_named(tmp_path, prop, value):
+    props, rows = _inria_rows(5)
+    rows[prop][[1, 3]] = value
+    path = tmp_path / "nan.ply"
+    write_custom_ply(path, props, rows)
+    with pytest.raises(DataError, match=rf"nan.ply: property '{prop}' is NaN or infinite in 2 of 5 vertices"):
+        load_ply(path)
+
+
+def test_non_finite_in_ascii_ply(tmp_path):
+    props, rows = _inria_rows(3)
+    rows["y"][0] = float("nan")
+    write_custom_ply(tmp_path / "a.ply", props, rows, "ascii")
+    with pytest.raises(DataError, match="property 'y'"):
+        load_ply(tmp_path / "a.ply")
+
+
+def test_absurd_scale_and_zero_quaternion_refused(tmp_path):
+    props, rows = _inria_rows(4)
+    rows["scale_1"][2] = 25.0
+    write_custom_ply(tmp_path / "s.ply", props, rows)
+    with pytest.raises(DataError, match=r"s.ply: property 'scale_1' .* above 20 in 1 of 4 vertices \(max 25\)"):
+        load_ply(tmp_path / "s.ply")
+    props, rows = _inria_rows(4)
+    for i in range(4):
+        rows[f"rot_{i}"][0] = 0.0
+    write_custom_ply(tmp_path / "q.ply", props, rows)
+    with pytest.raises(DataError, match=r"q.ply: .*'rot_0'..'rot_3' are a zero quaternion in 1 of 4"):
+        load_ply(tmp_path / "q.ply")
+
+
+def test_big_endian_is_read_in_its_byte_order(tmp_path):
+    props, little = _inria_rows(6)
+    big = little.astype([(name, ">" + t) for name, t in props])
+    write_custom_ply(tmp_path / "le.ply", props, little)
+    write_custom_ply(tmp_path / "be.ply", props, big, "binary_big_endian")
+    assert (tmp_path / "le.ply").read_bytes()[-8:] != (tmp_path / "be.ply").read_bytes()[-8:]
+    a, b = load_ply(tmp_path / "le.ply"), load_ply(tmp_path / "be.ply")
+    for name in PARAM_NAMES:
+        assert torch.equal(a.params[name], b.params[name]), name
+
+
+def test_big_endian_data_under_a_little_endian_header_is_refused(tmp_path):
+    props, rows = _inria_rows(50)
+    big = rows.astype([(name, ">" + t) for name, t in props])
+    path = tmp_path / "swapped.ply"
+    write_custom_ply(path, props, big, "binary_little_endian")
+    with pytest.raises(DataError, match="swapped.ply: propert.*byte order"):
+        load_ply(path)

@@ -21,7 +21,7 @@ from metegs.cameras import Cameras
 from metegs.data.config import DatasetConfig
 from metegs.data.images import image_size
 from metegs.data.parsers.clean import find_clean_paths
-from metegs.data.parsers.nerfstudio import gl_matrix, gl_to_cv, read_json, warn_missing
+from metegs.data.parsers.nerfstudio import gl_matrix, gl_to_cv, number, read_json, warn_missing
 from metegs.data.scene import SceneData
 from metegs.errors import DataError
 
@@ -62,7 +62,9 @@ class BlenderParser:
         c2w = gl_to_cv(np.stack([v[3] for v in views]))
         cams = Cameras.create(c2w, focal, focal, width / 2.0, height / 2.0, width, height)
         return SceneData(
-            cameras=cams, names=[v[1] for v in views], image_paths=[v[2] for v in views],
+            cameras=cams,
+            names=[v[1] for v in views],
+            image_paths=[v[2] for v in views],
             clean_image_paths=find_clean_paths(path, [v[2] for v in views]),
             train_indices=[i for i, v in enumerate(views) if v[0] == "train"],
             test_indices=[i for i, v in enumerate(views) if v[0] == "test"],
@@ -73,12 +75,9 @@ class BlenderParser:
     def _read_split(source: Path, root: Path) -> tuple[list, list[str]]:
         """([(name, image path, GL c2w [4, 4], angle_x, meta)], missing names) of one transforms file."""
         meta = read_json(source)
-        try:
-            angle_x = float(meta["camera_angle_x"])
-        except KeyError as exc:
-            raise DataError(source, "missing 'camera_angle_x'") from exc
-        except (TypeError, ValueError) as exc:
-            raise DataError(source, f"'camera_angle_x' is not a number: {meta['camera_angle_x']!r}") from exc
+        if "camera_angle_x" not in meta:
+            raise DataError(source, "missing 'camera_angle_x'")
+        angle_x = number(meta["camera_angle_x"], source, "'camera_angle_x'")
         frames = meta.get("frames")
         if not isinstance(frames, list):
             raise DataError(source, "missing 'frames' list")
@@ -100,9 +99,9 @@ class BlenderParser:
     @staticmethod
     def _intrinsics(views: list, root: Path) -> tuple[int, int, list[float]]:
         """(width, height, per-view focal) from the first image (or ``w``/``h``) and each ``camera_angle_x``."""
-        _, meta, _ = views[0][4]
+        _, meta, source = views[0][4]
         if "w" in meta and "h" in meta:
-            width, height = int(meta["w"]), int(meta["h"])
+            width, height = int(number(meta["w"], source, "'w'")), int(number(meta["h"], source, "'h'"))
         else:
             width, height = image_size(views[0][2])
         focals = []

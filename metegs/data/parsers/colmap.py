@@ -2,7 +2,9 @@
 
 Layouts recognised: ``<scene>/sparse/0/cameras.{bin,txt}`` (several models ``sparse/0``, ``sparse/1``...:
 the one with most registered images is used), ``<scene>/sparse/cameras.*`` and ``<scene>/cameras.*``.
-Images are read from ``<scene>/images/`` by the image name stored in the model.
+Images are read from ``<scene>/images/`` by the image name stored in the model. The model's files are checked
+by `metegs.data.parsers.colmap_files.check_model` before pycolmap reads them (a truncated or corrupt file is
+named with its record and field, and never makes pycolmap allocate more than the file's size).
 
 Camera models: PINHOLE and SIMPLE_PINHOLE are used directly. SIMPLE_RADIAL, RADIAL, OPENCV and
 FULL_OPENCV are undistorted when ``--dataset.undistort`` is on (the default): each image is remapped
@@ -30,6 +32,7 @@ from metegs.cameras import Cameras, to_homogeneous
 from metegs.data.config import DatasetConfig
 from metegs.data.images import load_image
 from metegs.data.parsers.clean import find_clean_paths
+from metegs.data.parsers.colmap_files import check_model, model_file
 from metegs.data.scene import SceneData, split_every_nth
 from metegs.errors import DataError
 
@@ -88,13 +91,11 @@ def _pinhole_part(model: str, params: np.ndarray, width: int, height: int) -> _P
     return _Pinhole(1.0, 1.0, width / 2, height / 2, width, height)
 
 
-def _camera_file(folder: Path) -> Path:
-    return next(folder / f"cameras.{e}" for e in ("bin", "txt") if (folder / f"cameras.{e}").is_file())
-
-
 def _read_model(folder: Path):
+    """pycolmap's reconstruction of ``folder``, once `check_model` has found its files well-formed."""
     import pycolmap
 
+    check_model(folder)
     try:
         return pycolmap.Reconstruction(str(folder))
     except Exception as exc:  # pycolmap raises plain RuntimeError/ValueError on malformed models
@@ -208,16 +209,29 @@ class ColmapParser:
             paths.append(file)
         cams = Cameras.create(
             np.stack(c2w).astype(np.float32),
-            [p.fx for p in intr], [p.fy for p in intr], [p.cx for p in intr], [p.cy for p in intr],
-            [p.width for p in intr], [p.height for p in intr],
+            [p.fx for p in intr],
+            [p.fy for p in intr],
+            [p.cx for p in intr],
+            [p.cy for p in intr],
+            [p.width for p in intr],
+            [p.height for p in intr],
         )
-        points, colors = self._points(rec)
+        points, colors = self._points(rec, folder)
         train, test = split_every_nth(len(images), options.test_every)
         return SceneData(
-            cameras=cams, names=[im.name for im in images], image_paths=paths,
-            clean_image_paths=find_clean_paths(path, paths) if all(p.is_relative_to(image_dir) for p in paths) else None,
-            train_indices=train, test_indices=test, points=points, point_colors=colors,
-            up=up_from_cameras(np.stack(c2w)), metric_scale=None, source=path,
+            cameras=cams,
+            names=[im.name for im in images],
+            image_paths=paths,
+            clean_image_paths=find_clean_paths(path, paths)
+            if all(p.is_relative_to(image_dir) for p in paths)
+            else None,
+            train_indices=train,
+            test_indices=test,
+            points=points,
+            point_colors=colors,
+            up=up_from_cameras(np.stack(c2w)),
+            metric_scale=None,
+            source=path,
         )
 
     @staticmethod
@@ -242,8 +256,9 @@ class ColmapParser:
             raise DataError(image_dir, f"no images found in {image_dir} (none of the {len(images)} model images exist)")
         if missing:
             shown = ", ".join(missing[:10]) + (f" and {len(missing) - 10} more" if len(missing) > 10 else "")
-            warnings.warn(f"{image_dir}: skipping {len(missing)} registered image(s) without a file: {shown}",
-                          stacklevel=3)
+            warnings.warn(
+                f"{image_dir}: skipping {len(missing)} registered image(s) without a file: {shown}", stacklevel=3
+            )
         skip = set(missing)
         return [im for im in images if im.name not in skip]
 
@@ -258,14 +273,14 @@ class ColmapParser:
         pin = _pinhole_part(model, params, w, h)
         if model in _PINHOLE:
             return pin, src
-        cameras_file = _camera_file(model_folder)
+        cameras_file = model_file(model_folder, "cameras")
         if model not in _DISTORTED:
             raise DataError(
                 cameras_file,
                 f"camera {cam.camera_id} uses the unsupported camera model {model}; supported: "
                 f"{', '.join(_PINHOLE + _DISTORTED)} (undistort with COLMAP image_undistorter first)",
             )
-        if np.all(params[_N_INTRINSICS[model]:] == 0.0):
+        if np.all(params[_N_INTRINSICS[model] :] == 0.0):
             return pin, src
         if not options.undistort:
             raise DataError(
@@ -277,12 +292,17 @@ class ColmapParser:
         return pin, undistort_to_cache(src, scene / CACHE_DIR, im.name, model, params, remap)
 
     @staticmethod
-    def _points(rec) -> tuple[np.ndarray | None, np.ndarray | None]:
+    def _points(rec, folder: Path) -> tuple[np.ndarray | None, np.ndarray | None]:
         """[P, 3] float32 xyz and [P, 3] float32 colours in [0, 1] of the model's 3D points (None if none)."""
         pts = list(rec.points3D.values())
         if not pts:
             return None, None
         xyz = np.array([p.xyz for p in pts], dtype=np.float32).reshape(-1, 3)
+        bad = int((~np.isfinite(xyz).all(axis=1)).sum())
+        if bad:
+            raise DataError(
+                model_file(folder, "points3D"), f"{bad} of {len(pts)} points have a non-finite position (X, Y, Z)"
+            )
         rgb = np.array([p.color for p in pts], dtype=np.float32).reshape(-1, 3) / 255.0
         return xyz, rgb
 

@@ -23,6 +23,7 @@ from metegs.data.config import DatasetConfig
 from metegs.data.images import image_size, list_images
 from metegs.data.parsers.clean import find_clean_paths
 from metegs.data.parsers.colmap import up_from_cameras
+from metegs.data.parsers.nerfstudio import read_npy
 from metegs.data.scene import SceneData, split_every_nth
 from metegs.errors import DataError
 
@@ -60,8 +61,9 @@ def mask_paths(path: Path, images: list[Path], image_dir: Path) -> list[Path] | 
     by_stem = {p.stem: p for p in folder.iterdir() if p.is_file()}
     missing = [im.name for im in images if im.stem not in by_stem]
     if missing:
-        warnings.warn(f"{folder}: ignoring the masks, {len(missing)} image(s) have none (e.g. {missing[0]})",
-                      stacklevel=3)
+        warnings.warn(
+            f"{folder}: ignoring the masks, {len(missing)} image(s) have none (e.g. {missing[0]})", stacklevel=3
+        )
         return None
     return [by_stem[im.stem] for im in images]
 
@@ -92,24 +94,31 @@ class LLFFParser:
         width, height = image_size(images[0])
         c2w = llff_to_opencv(poses[:, :, :4])
         cams = Cameras.create(
-            c2w.astype(np.float32), focal * width / w_file, focal * height / h_file, width / 2.0, height / 2.0,
-            width, height,
+            c2w.astype(np.float32),
+            focal * width / w_file,
+            focal * height / h_file,
+            width / 2.0,
+            height / 2.0,
+            width,
+            height,
         )
         train, test = split_every_nth(len(images), options.test_every)
         return SceneData(
-            cameras=cams, names=[p.name for p in images], image_paths=images,
+            cameras=cams,
+            names=[p.name for p in images],
+            image_paths=images,
             clean_image_paths=find_clean_paths(path, images),
-            mask_paths=mask_paths(path, images, image_dir), train_indices=train, test_indices=test,
-            up=up_from_cameras(c2w), source=path,
+            mask_paths=mask_paths(path, images, image_dir),
+            train_indices=train,
+            test_indices=test,
+            up=up_from_cameras(c2w),
+            source=path,
         )
 
     @staticmethod
     def _load(source: Path) -> np.ndarray:
         """[N, 17] float64 rows of poses_bounds.npy; DataError naming the file if malformed."""
-        try:
-            data = np.load(source, allow_pickle=False)
-        except (OSError, ValueError) as exc:
-            raise DataError(source, f"cannot read the array: {exc}") from exc
+        data = read_npy(source, "poses and bounds")
         if data.ndim != 2 or data.shape[1] != 17 or data.shape[0] == 0:
             raise DataError(source, f"expected an array of shape [N, 17], got {list(data.shape)}")
         data = data.astype(np.float64)

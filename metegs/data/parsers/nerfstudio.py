@@ -31,6 +31,7 @@ from metegs.data.config import DatasetConfig
 from metegs.data.parsers.clean import find_clean_paths
 from metegs.data.scene import SceneData, split_every_nth
 from metegs.errors import DataError
+from metegs.gaussians.ply import check_finite, read_ply_vertices
 
 _INTRINSICS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
 _DISTORTION = ("k1", "k2", "k3", "k4", "p1", "p2")
@@ -49,6 +50,36 @@ def read_json(path: Path) -> dict:
     if not isinstance(meta, dict):
         raise DataError(path, "expected a JSON object at the top level")
     return meta
+
+
+def number(value, source: Path, what: str) -> float:
+    """``value`` as a finite float; DataError naming the file and ``what`` otherwise."""
+    try:
+        out = float(value)
+    except (TypeError, ValueError):
+        out = None
+    if out is None or not np.isfinite(out):
+        raise DataError(source, f"{what} must be a finite number, got {value!r}")
+    return out
+
+
+def read_npy(path: Path, what: str) -> np.ndarray:
+    """A numeric ``.npy`` array; DataError naming the file when it is missing, not a .npy file or truncated.
+
+    The file is memory-mapped, so a header that claims more data than the file holds allocates nothing.
+    """
+    try:
+        with open(path, "rb") as f:
+            if f.read(6) != b"\x93NUMPY":
+                raise DataError(path, f"the {what} file is not a .npy array (no NUMPY magic bytes)")
+        data = np.load(path, mmap_mode="r", allow_pickle=False)
+    except FileNotFoundError as exc:
+        raise DataError(path, f"{what}: file does not exist") from exc
+    except (OSError, ValueError, EOFError) as exc:
+        raise DataError(path, f"cannot read the {what} (truncated, or not a plain numeric array): {exc}") from exc
+    if data.dtype.kind not in "biuf":
+        raise DataError(path, f"the {what} must be a numeric array, got dtype {data.dtype}")
+    return np.array(data)
 
 
 def gl_matrix(value, source: Path, where: str) -> np.ndarray:
@@ -112,13 +143,21 @@ class NerfstudioParser:
             exposure_time_s=None if any(v["exposure"] is None for v in present) else [v["exposure"] for v in present],
         )
         names = [v["name"] for v in present]
-        train, test = _split(meta, names, source.parent, options.test_every)
+        train, test = _split(meta, names, source, options.test_every)
         points, colors = self._points(meta, source)
         paths = [v["path"] for v in present]
         return SceneData(
-            cameras=cams, names=names, image_paths=paths, clean_image_paths=find_clean_paths(source.parent, paths),
-            depths=_npy_depths(present, source), train_indices=train, test_indices=test, points=points,
-            point_colors=colors, source=path, **extra["scene"],
+            cameras=cams,
+            names=names,
+            image_paths=paths,
+            clean_image_paths=find_clean_paths(source.parent, paths),
+            depths=_npy_depths(present, source),
+            train_indices=train,
+            test_indices=test,
+            points=points,
+            point_colors=colors,
+            source=path,
+            **extra["scene"],
         )
 
     @staticmethod
@@ -140,10 +179,7 @@ class NerfstudioParser:
             value = frame.get(key, meta.get(key))
             if value is None:
                 raise DataError(source, f"{where} has no intrinsic '{key}' (neither per frame nor at the top level)")
-            try:
-                view[key] = float(value)
-            except (TypeError, ValueError) as exc:
-                raise DataError(source, f"{where}: intrinsic '{key}' is not a number: {value!r}") from exc
+            view[key] = number(value, source, f"{where}: intrinsic '{key}'")
         return view
 
     @staticmethod
@@ -160,10 +196,7 @@ def _npy_depths(views: list[dict], source: Path) -> list[np.ndarray] | None:
         return None
     depths = []
     for v in views:
-        try:
-            d = np.load(v["depth"], allow_pickle=False)
-        except (OSError, ValueError) as exc:
-            raise DataError(v["depth"], f"cannot read the depth map: {exc}") from exc
+        d = read_npy(v["depth"], "depth map")
         if d.shape != (int(v["h"]), int(v["w"])):
             raise DataError(v["depth"], f"depth map has shape {list(d.shape)}, expected [{int(v['h'])}, {int(v['w'])}]")
         depths.append(d.astype(np.float32))
@@ -175,8 +208,12 @@ def _check_model(obj: dict, source: Path, where: str) -> None:
     model = obj.get("camera_model")
     if model is not None and model not in _PERSPECTIVE:
         raise DataError(source, f"{where}: camera_model {model} is unsupported (only pinhole cameras are)")
-    dist = [obj.get(k, 0.0) or 0.0 for k in _DISTORTION] + list(obj.get("distortion_params") or [])
-    if any(float(d) != 0.0 for d in dist):
+    params = obj.get("distortion_params") or []
+    if not isinstance(params, list):
+        raise DataError(source, f"{where}: 'distortion_params' must be a list, got {params!r}")
+    dist = [number(obj.get(k) or 0.0, source, f"{where}: '{k}'") for k in _DISTORTION]
+    dist += [number(d, source, f"{where}: 'distortion_params'") for d in params]
+    if any(d != 0.0 for d in dist):
         raise DataError(
             source,
             f"{where}: lens distortion is unsupported for transforms.json (non-zero k1..k4/p1/p2); "
@@ -184,9 +221,12 @@ def _check_model(obj: dict, source: Path, where: str) -> None:
         )
 
 
-def _split(meta: dict, names: list[str], root: Path, every: int) -> tuple[list[int], list[int]]:
+def _split(meta: dict, names: list[str], source: Path, every: int) -> tuple[list[int], list[int]]:
     """Train/test indices from ``train_filenames``/``test_filenames`` (or ``val_filenames``), else every n-th."""
     lists = {k: meta.get(f"{k}_filenames") for k in ("train", "val", "test")}
+    for k, items in lists.items():
+        if items is not None and not isinstance(items, list):
+            raise DataError(source, f"'{k}_filenames' must be a list of image paths, got {items!r}")
     test_list = lists["test"] if lists["test"] is not None else lists["val"]
     if lists["train"] is None and test_list is None:
         return split_every_nth(len(names), every)
@@ -199,92 +239,22 @@ def _split(meta: dict, names: list[str], root: Path, every: int) -> tuple[list[i
         test_set = norm(test_list)
         train = [i for i, n in enumerate(names) if n not in test_set]
     test = [i for i, n in enumerate(names) if n in test_set]
+    if lists["train"] and not train:
+        raise DataError(source, "none of the 'train_filenames' is the file_path of a frame with an image")
     return train, test
-
-
-_PLY_TYPES = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
-    "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
-}
-
-
-def _ply_header(f, path: Path) -> tuple[str, list[tuple[str, int, list]]]:
-    """(format, [(element name, count, [(property, type or None for lists)])]) of a PLY header."""
-    if f.readline().strip() != b"ply":
-        raise DataError(path, "not a PLY file (missing 'ply' magic)")
-    fmt, elements = None, []
-    while True:
-        line = f.readline()
-        if not line:
-            raise DataError(path, "PLY header has no 'end_header'")
-        words = line.decode("ascii", errors="replace").split()
-        if not words or words[0] in ("comment", "obj_info"):
-            continue
-        if words[0] == "end_header":
-            break
-        if words[0] == "format":
-            fmt = words[1]
-        elif words[0] == "element":
-            elements.append((words[1], int(words[2]), []))
-        elif words[0] == "property" and elements:
-            is_list = words[1] == "list"
-            if not is_list and words[1] not in _PLY_TYPES:
-                raise DataError(path, f"unknown PLY property type {words[1]}")
-            elements[-1][2].append((words[-1], None if is_list else _PLY_TYPES[words[1]]))
-    if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
-        raise DataError(path, f"unsupported PLY format {fmt}")
-    return fmt, elements
 
 
 def read_ply_points(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
     """Vertices of a PLY file: [P, 3] float32 xyz and [P, 3] float32 colours in [0, 1] (None without colours).
 
-    Supports ASCII and binary PLY whose elements before ``vertex`` have no list properties.
+    Read with `metegs.gaussians.ply.read_ply_vertices` (ascii or binary of either byte order).
     """
     path = Path(path)
-    if not path.is_file():
-        raise DataError(path, "PLY file does not exist")
-    with open(path, "rb") as f:
-        fmt, elements = _ply_header(f, path)
-        vertex = None
-        for name, count, props in elements:
-            if name != "vertex" and any(t is None for _, t in props):
-                raise DataError(path, f"PLY element '{name}' before 'vertex' has list properties (unsupported)")
-            if name == "vertex":
-                vertex = _read_ply_element(f, fmt, count, props, path)
-                break
-            _read_ply_element(f, fmt, count, props, path)
-    if vertex is None:
-        raise DataError(path, "PLY file has no 'vertex' element")
-    return _ply_xyz_rgb(vertex, path)
-
-
-def _read_ply_element(f, fmt: str, count: int, props: list, path: Path) -> np.ndarray:
-    if any(t is None for _, t in props):
-        raise DataError(path, "PLY vertex element with list properties is unsupported")
-    if fmt == "ascii":
-        rows = [f.readline().split() for _ in range(count)]
-        try:
-            table = np.array(rows, dtype=np.float64).reshape(count, len(props))
-        except ValueError as exc:
-            raise DataError(path, "malformed ASCII PLY data") from exc
-        data = np.empty(count, dtype=np.dtype([(n, t) for n, t in props]))
-        for j, (n, _) in enumerate(props):
-            data[n] = table[:, j]
-        return data
-    order = "<" if fmt == "binary_little_endian" else ">"
-    dtype = np.dtype([(n, order + t) for n, t in props])
-    data = np.frombuffer(f.read(dtype.itemsize * count), dtype=dtype)
-    if len(data) != count:
-        raise DataError(path, f"PLY file is truncated: expected {count} elements, read {len(data)}")
-    return data
-
-
-def _ply_xyz_rgb(vertex: np.ndarray, path: Path) -> tuple[np.ndarray, np.ndarray | None]:
+    vertex = read_ply_vertices(path)
     fields = vertex.dtype.names
     if not all(k in fields for k in ("x", "y", "z")):
         raise DataError(path, "PLY vertices have no x, y, z properties")
+    check_finite(path, vertex, [k for k in ("x", "y", "z", "red", "green", "blue") if k in fields])
     xyz = np.stack([vertex[k] for k in ("x", "y", "z")], axis=1).astype(np.float32)
     if not all(k in fields for k in ("red", "green", "blue")):
         return xyz, None
@@ -307,12 +277,13 @@ def _metegs_block(meta: dict, n_frames: int, source: Path) -> dict:
     if exposure is not None:
         if not isinstance(exposure, list) or len(exposure) != n_frames:
             raise DataError(source, f"metegs.exposure_time_s must list one value per frame ({n_frames})")
-        out["exposure"] = [float(e) for e in exposure]
+        out["exposure"] = [number(e, source, "metegs.exposure_time_s") for e in exposure]
     if block.get("metric_scale") is not None:
-        out["scene"]["metric_scale"] = float(block["metric_scale"])
+        out["scene"]["metric_scale"] = number(block["metric_scale"], source, "metegs.metric_scale")
     if block.get("up") is not None:
-        up = np.asarray(block["up"], dtype=np.float32).reshape(-1)
-        if up.shape != (3,) or not np.isfinite(up).all() or np.linalg.norm(up) == 0:
+        values = block["up"] if isinstance(block["up"], list) else [block["up"]]
+        up = np.asarray([number(u, source, "metegs.up") for u in values], dtype=np.float32)
+        if up.shape != (3,) or np.linalg.norm(up) == 0:
             raise DataError(source, f"metegs.up must be a non-zero 3-vector, got {block['up']!r}")
         out["scene"]["up"] = up / np.linalg.norm(up)
     if block.get("image_space") in ("srgb", "linear"):
