@@ -128,5 +128,5 @@ def check_compatible(payload: dict[str, Any], path: Path, method: str, scene: di
 
 def scene_signature(parser: str, num_views: int, extent: float) -> dict[str, Any]:
     """What a checkpoint records of its scene to be recognised again: the parser, the view count and the
-    training cameras' extent (scene units)."""
+    cameras' extent (scene units)."""
     return {"parser": parser, "num_views": int(num_views), "extent": float(extent)}

@@ -191,8 +191,9 @@ class Trainer:
         return Path(c.output_dir) / scene_name / c.method / name
 
     def scene_signature(self) -> dict:
-        """What this run's checkpoints record of the scene (`check_compatible` compares it on resume)."""
-        return scene_signature(self.scene.parser, len(self.dataset.cameras), self.extent)
+        """What this run's checkpoints record of the scene (`check_compatible` compares it on resume): of all its
+        cameras, so that another split or image size of the same scene is still recognised."""
+        return scene_signature(self.scene.parser, len(self.dataset.cameras), scene_extent(self.dataset.cameras))
 
     def claim_run_dir(self) -> Path:
         """Create the default run folder, never reusing one: a folder that exists is an earlier run's. A resumed run

@@ -146,3 +146,11 @@ def test_staged_folders_of_dead_processes_are_removed(tmp_path):
         (folder / "images").mkdir(parents=True)
     assert remove_dead_stages(output) == [stale]
     assert not stale.exists() and live.exists()
+
+
+def test_resume_with_another_split_of_the_same_scene_is_accepted(tmp_path):
+    first = tiny(tmp_path, max_steps=2, experiment_name="run").setup()
+    first.train()
+    other_split = replace(TINY, test_every=2)
+    again = replace(first.config, dataset=other_split, load_checkpoint=first.run_dir / "checkpoints", max_steps=4)
+    assert again.setup().step == 2
