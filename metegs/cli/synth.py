@@ -17,7 +17,7 @@ import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal
 
 import numpy as np
 import tyro
@@ -69,6 +69,9 @@ class SynthArgs:
     """Explicit 10-m wind speed, m/s."""
     wind_dir_deg: Annotated[float | None, Range(0, 360)] = None
     """Explicit direction the wind blows from, degrees true."""
+    family: Literal["physical", "independent"] = "physical"
+    """Weather generator: metegs's own weather models from θ (physical), or 2D streak layers, heterogeneous fog
+    and blurred lens drops made without them (independent: a benchmark a method cannot fit with its own model)."""
     kinds: str = "rain+fog"
     """Weather to add: rain, fog or rain+fog; append +drops for lens drops when it rains (θ's count, else a
     default); the fog of rain+fog includes the rain's own veil."""
@@ -105,7 +108,7 @@ def main(args: SynthArgs, console: Console | None = None) -> Path:
     from metegs.data.parsers.base import parse_scene
     from metegs.engine.run import load_run_config
     from metegs.synth.conditions import plan_from_record, plan_from_values
-    from metegs.synth.contact_sheet import contact_sheet, encode_png, pick_views, theta_label
+    from metegs.synth.contact_sheet import contact_sheet, encode_png, pick_views, record_label
     from metegs.synth.degrade import iter_degraded_views, parse_kinds
     from metegs.synth.depth import depths_from_run, guess_metres_per_unit
     from metegs.synth.writers import DatasetWriter, staged_output
@@ -191,9 +194,9 @@ def main(args: SynthArgs, console: Console | None = None) -> Path:
     with staged_output(args.output, args.overwrite) as tmp:
         writer = DatasetWriter(scene, tmp)
         with _progress(console) as progress:
-            task = progress.add_task(f"degrade ({kinds})", total=n)
+            task = progress.add_task(f"degrade ({kinds}, {args.family})", total=n)
             for view in iter_degraded_views(
-                scene, plan.thetas, kinds=kinds, seed=args.seed, metres_per_unit=mpu, depths=depths
+                scene, plan.thetas, kinds=kinds, seed=args.seed, metres_per_unit=mpu, depths=depths, family=args.family
             ):
                 writer.write_view(view.index, view.image, view.clean)
                 record = dict(view.record)
@@ -201,7 +204,7 @@ def main(args: SynthArgs, console: Console | None = None) -> Path:
                 record["image"], record["clean_image"] = writer.image_rel[view.index], writer.clean_rel[view.index]
                 records.append(record)
                 if view.index in picks:
-                    preview[view.index] = (view.clean, view.image, record["theta"])
+                    preview[view.index] = (view.clean, view.image, record_label(record))
                 progress.advance(task)
         writer.finish(depths if writer.format == "nerfstudio" and scene.source is None else None)
         weather = {
@@ -209,6 +212,7 @@ def main(args: SynthArgs, console: Console | None = None) -> Path:
             "format": writer.format,
             "source": str(scene.source) if scene.source is not None else "synthetic scene",
             "kinds": kinds,
+            "family": args.family,
             "seed": args.seed,
             "metres_per_unit": mpu,
             "metres_per_unit_source": mpu_note,
@@ -218,7 +222,7 @@ def main(args: SynthArgs, console: Console | None = None) -> Path:
         }
         (tmp / "weather.json").write_text(json.dumps(weather, indent=1) + "\n")
         order = sorted(preview)
-        title = f"metegs-synth {kinds}, seed {args.seed}: " + (
+        title = f"metegs-synth {kinds} ({args.family}), seed {args.seed}: " + (
             f"{Path(plan.source['file']).name} {', '.join(t for t in plan.times if t)}"
             if "file" in plan.source
             else "explicit values"
@@ -226,7 +230,7 @@ def main(args: SynthArgs, console: Console | None = None) -> Path:
         sheet = contact_sheet(
             [preview[i][0] for i in order],
             [preview[i][1] for i in order],
-            [theta_label(preview[i][2]) for i in order],
+            [preview[i][2] for i in order],
             [Path(scene.names[i]).stem for i in order],
             title=title,
         )

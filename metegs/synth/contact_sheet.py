@@ -34,6 +34,24 @@ def theta_label(theta: dict) -> list[str]:
     return [line1, line2]
 
 
+def record_label(record: dict) -> list[str]:
+    """Two short lines describing a degraded view from its weather.json record: θ (physical family) or the met
+    conditions and what the independent family drew."""
+    if "theta" in record:
+        return theta_label(record["theta"])
+    cond = record.get("conditions", {})
+    rain = record.get("rain")
+    line1 = f"P {cond.get('precip_mm_h') or 0.0:.1f} mm/h {cond.get('wmo_class', '?')}"
+    if rain:
+        line1 += f", {len(rain['layers'])} layers"
+    vis = cond.get("visibility_m")
+    fog = record.get("fog")
+    line2 = "vis n/a" if vis is None else f"vis {_metres(vis)}"
+    if fog:
+        line2 += f", t {fog['mean_transmittance']:.2f}"
+    return [line1, line2]
+
+
 def _metres(v: float) -> str:
     return f"{v / 1000:.1f} km" if v >= 1000 else f"{v:.0f} m"
 

@@ -44,6 +44,10 @@ rains) and ``drops`` (lens drops when it rains: θ_drops' count when the record 
 else the model's forced default). Lens drops are a property of one camera's glass, not of the scene's weather, and
 they hide large parts of the view: they are added only when asked for."""
 
+FAMILIES = ("physical", "independent")
+"""Degradation families: metegs's own weather models from θ, or `metegs.synth.independent` (a benchmark that the
+method cannot fit with its own generator)."""
+
 UNKNOWN_DEPTH = 1e9
 """Depth (scene units) given to pixels whose depth is unknown: far beyond any fog's reach."""
 
@@ -82,6 +86,7 @@ def degrade_scene(
     seed: int = 0,
     metres_per_unit: float | None = None,
     depths: Sequence[np.ndarray] | None = None,
+    family: str = "physical",
 ) -> tuple[SceneData, list[dict]]:
     """A copy of ``scene`` whose views carry the weather of ``theta``.
 
@@ -94,6 +99,7 @@ def degrade_scene(
         metres_per_unit: length of a scene unit in metres; None: ``scene.metric_scale`` or 1.0.
         depths: per view [H, W] depth (z along the optical axis, scene units; non-finite or ≤ 0 where unknown,
             filled from the nearest known pixel); None: ``scene.depths``.
+        family: ``physical`` or ``independent`` (see `iter_degraded_views`).
 
     Returns:
         (scene copy, records): the copy's ``images`` are the degraded views (float32 [H, W, 3] in memory),
@@ -104,7 +110,7 @@ def degrade_scene(
     """
     images, cleans, records = [], [], []
     for view in iter_degraded_views(
-        scene, theta, kinds=kinds, seed=seed, metres_per_unit=metres_per_unit, depths=depths
+        scene, theta, kinds=kinds, seed=seed, metres_per_unit=metres_per_unit, depths=depths, family=family
     ):
         images.append(view.image)
         cleans.append(view.clean)
@@ -122,8 +128,11 @@ def iter_degraded_views(
     metres_per_unit: float | None = None,
     depths: Sequence[np.ndarray] | None = None,
     views: Sequence[int] | None = None,
+    family: str = "physical",
 ) -> Iterator[DegradedView]:
-    """`degrade_scene` one view at a time (for progress bars); ``views`` picks a subset (default: all)."""
+    """`degrade_scene` one view at a time (for progress bars); ``views`` picks a subset (default: all).
+    ``family``: ``physical`` (metegs's weather models from θ) or ``independent`` (`metegs.synth.independent`:
+    made without them, from θ's met conditions only)."""
     wanted = parse_kinds(kinds)
     n = len(scene)
     thetas = _per_view_thetas(theta, n)
@@ -140,7 +149,14 @@ def iter_degraded_views(
     if len(depth_maps) != n:
         raise DataError(scene.source or "scene", f"{len(depth_maps)} depth maps for {n} views")
     clean = _clean_images(scene)
-    engine = _Engine(scene, thetas, wanted, seed, mpu, clean)
+    if family == "physical":
+        engine = _Engine(scene, thetas, wanted, seed, mpu, clean)
+    elif family == "independent":
+        from metegs.synth.independent import IndependentEngine
+
+        engine = IndependentEngine(scene, [t.conditions for t in thetas], wanted, seed, mpu)
+    else:
+        raise ConfigError(f"family={family!r}: expected one of {', '.join(FAMILIES)}")
     for i in range(n) if views is None else views:
         image = clean[i]() if callable(clean[i]) else clean[i]
         depth = _depth_for(depth_maps[i], image.shape[:2], scene, i)
