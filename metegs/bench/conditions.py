@@ -28,6 +28,7 @@ from typing import Any
 
 from metegs.errors import ConfigError, DataError
 from metegs.meteo.aggregate import RAIN_CLASSES
+from metegs.synth.degrade import FAMILIES
 from metegs.weather.conditions import ConditionsConfig
 
 CLASS_TARGET_MM_H: dict[str, float] = {
@@ -178,8 +179,15 @@ class ConditionSpec:
     fog: dict[str, Any] | None = None
     """Fog source: ``{record: FILE, visibility_m: TARGET}`` (picked; optional ``tolerance``), or
     ``{record, time}``, or ``{visibility_m: X, explicit: true}``; optional ``reader``, ``station``."""
+    family: str = "physical"
+    """Weather generator of the degraded photos: ``physical`` (metegs's weather models from θ) or ``independent``
+    (`metegs.synth.independent`, made without them); the record sets training's θ either way."""
 
     def __post_init__(self) -> None:
+        if self.family not in FAMILIES:
+            raise ConfigError(
+                f"condition {self.name!r}: family must be one of {', '.join(FAMILIES)}, got {self.family!r}"
+            )
         if self.kind not in KINDS:
             raise ConfigError(f"condition {self.name!r}: kind must be one of {', '.join(KINDS)}, got {self.kind!r}")
         if "rain" in self.kind.split("+") and not self.rain:
@@ -198,11 +206,19 @@ class ResolvedCondition:
     """What ``--conditions.*`` of every run of this condition is set to."""
     provenance: dict[str, Any] = field(default_factory=dict)
     """Records, times, rates, visibilities and how they were picked (JSON-safe)."""
+    family: str = "physical"
+    """Weather generator of the degraded photos (`ConditionSpec.family`)."""
 
     def to_dict(self) -> dict[str, Any]:
         from metegs.config import to_dict
 
-        return {"name": self.name, "kind": self.kind, "conditions": to_dict(self.conditions), **self.provenance}
+        return {
+            "name": self.name,
+            "kind": self.kind,
+            "family": self.family,
+            "conditions": to_dict(self.conditions),
+            **self.provenance,
+        }
 
 
 def _path(value: Any, base: Path | None, where: str) -> Path:
@@ -308,4 +324,4 @@ def resolve_condition(spec: ConditionSpec, base: Path | None = None) -> Resolved
         conditions = ConditionsConfig(record=record, time=time, visibility_m=visibility)
     else:
         conditions = ConditionsConfig(precip_mm_h=precip or 0.0, visibility_m=visibility)
-    return ResolvedCondition(spec.name, spec.kind, conditions, prov)
+    return ResolvedCondition(spec.name, spec.kind, conditions, prov, spec.family)

@@ -61,6 +61,7 @@ def degraded_dataset(
         precip_mm_h=c.precip_mm_h if explicit else None,
         visibility_m=c.visibility_m,
         kinds=condition.kind,
+        family=condition.family,
         seed=seed,
         overwrite=True,
         dataset=dataset,

@@ -213,6 +213,7 @@ def conditions_table(results: dict) -> str:
             [
                 name,
                 c["kind"],
+                c.get("family", "physical"),
                 "; ".join(src),
                 "–" if not rain else f"{rain.get('precip_mm_h')} ({rain.get('wmo_class', '')})",
                 "–"
@@ -226,13 +227,14 @@ def conditions_table(results: dict) -> str:
     header = [
         "Condition",
         "Kind",
+        "Weather made by",
         "Record and time (UTC)",
         "Rain mm/h (WMO)",
         "Visibility m",
         "θ streaks/view",
         "θ fog β /m",
     ]
-    return _table(header, rows, ["l", "l", "l", "r", "r", "r", "r"])
+    return _table(header, rows, ["l", "l", "l", "l", "r", "r", "r", "r"])
 
 
 def checks_table(results: dict) -> str | None:

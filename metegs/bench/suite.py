@@ -185,7 +185,7 @@ class SuiteRunner:
                 c = dict(hit["conditions"])
                 c["record"] = None if c.get("record") is None else Path(c["record"])
                 prov = {k: v for k, v in hit.items() if k in ("rain", "fog")}
-                resolved[spec.name] = ResolvedCondition(spec.name, spec.kind, ConditionsConfig(**c), prov)
+                resolved[spec.name] = ResolvedCondition(spec.name, spec.kind, ConditionsConfig(**c), prov, spec.family)
                 continue
             resolved[spec.name] = resolve_condition(spec, base)
             self.console.print(f"condition {spec.name}: {_describe_pick(resolved[spec.name])}", highlight=False)

@@ -75,6 +75,9 @@ class TrainConfig(InstantiateConfig):
     degrade: Literal["off", "auto", "rain", "fog", "rain+fog"] = "off"
     """Degrade a clean scene in memory before training, with the weather of `conditions` (the clean images become
     the references): auto = the method's weather kinds on the built-in synthetic scene, off for scenes from files."""
+    degrade_family: Literal["physical", "independent"] = "physical"
+    """Weather generator of `degrade`: metegs's own weather models from θ, or the independent family (2D streak
+    layers, heterogeneous fog, blurred drops; made without them, so the method cannot fit its own generator)."""
     conditions: ConditionsConfig = field(default_factory=ConditionsConfig)
     """The weather of the capture (met record and time, or explicit values)."""
     background: Literal["black", "white", "random"] = "black"

@@ -178,9 +178,12 @@ class Trainer:
             kinds="+".join(sorted(kinds, reverse=True)),
             seed=self.config.seed,
             metres_per_unit=scene_metres_per_unit(self.config.conditions, scene.metric_scale),
+            family=self.config.degrade_family,
         )
         self.decide(
-            "degrade", f"{'+'.join(sorted(kinds, reverse=True))} synthesised on the clean views: {describe(theta)}"
+            "degrade",
+            f"{'+'.join(sorted(kinds, reverse=True))} synthesised on the clean views "
+            f"({self.config.degrade_family} family): {describe(theta)}",
         )
         return degraded
 

@@ -20,7 +20,8 @@ REPO = Path(__file__).resolve().parents[2]
 def test_the_shipped_suites_parse():
     default = load_suite(REPO / "configs/bench/default.yaml")
     assert [s.name for s in default.scenes] == ["synthetic", "ethiopianhead"]
-    assert len(default.conditions) == 8 and {c.kind for c in default.conditions} == {"rain", "fog", "rain+fog"}
+    assert len(default.conditions) == 12 and {c.kind for c in default.conditions} == {"rain", "fog", "rain+fog"}
+    assert sum(c.family == "independent" for c in default.conditions) == 4
     names = {m.name for m in default.methods}
     assert {"3dgs", "3dgs-clean", "restore+3dgs", "metegs-full", "metegs-blind", "abl-a", "abl-d"} <= names
     assert default.scenes[1].data.name == "ethiopianhead-llff" and default.scenes[1].conditions
@@ -56,6 +57,10 @@ def _minimal(**extra):
         ({"eval_every": 2}, "eval_every"),
         ({"conditions": [], "methods": [{"name": "3dgs"}]}, "at least one condition"),
         ({"scenes": [{"name": "synthetic", "conditions": ["nope"]}]}, "names unknown condition"),
+        (
+            {"conditions": [{"name": "f", "kind": "fog", "fog": {"visibility_m": 9, "explicit": True}, "family": "x"}]},
+            "family must be one of physical, independent",
+        ),
     ],
 )
 def test_suite_file_errors_are_clear(change, message):
@@ -287,3 +292,30 @@ def test_a_tiny_suite_runs_resumes_and_reports(tmp_path):
     suite.train["max_steps"] = 7
     third = SuiteRunner(suite, output=out).run()
     assert all(r.get("config_changed") == ["max_steps"] for r in third["runs"] if r["status"] == "cached")
+
+
+def test_both_weather_families_in_one_suite(tmp_path):
+    """The same condition made by metegs's weather models and by the independent family: two degraded copies,
+    both in the results and the conditions table."""
+    from metegs.bench.suite import SuiteRunner
+
+    rain_fog = {"kind": "rain+fog", "rain": {"precip_mm_h": 20.0}, "fog": {"visibility_m": 300, "explicit": True}}
+    suite = suite_from_dict(
+        {
+            "name": "families",
+            "fps_repeats": 1,
+            "train": {"max_steps": 4, "save_renders": False, "dataset": {"test_every": 3, "synthetic": {
+                "width": 48, "height": 36, "num_views": 6, "num_points": 200}}},
+            "scenes": [{"name": "synthetic"}],
+            "conditions": [{"name": "rf", **rain_fog}, {"name": "rf-ind", "family": "independent", **rain_fog}],
+            "methods": [{"name": "3dgs"}],
+        }
+    )  # fmt: skip
+    out = tmp_path / "out"
+    results = SuiteRunner(suite, output=out).run()
+    assert {r["condition"] for r in results["runs"] if r["status"] == "done"} >= {"rf", "rf-ind"}
+    made = {c: json.loads((out / "synthetic" / c / "data" / "weather.json").read_text()) for c in ("rf", "rf-ind")}
+    assert made["rf"]["family"] == "physical" and made["rf-ind"]["family"] == "independent"
+    assert "theta" not in made["rf-ind"]["views"][0] and made["rf-ind"]["views"][0]["rain"]["layers"]
+    assert results["conditions"]["rf-ind"]["family"] == "independent"
+    assert "| rf-ind | rain+fog | independent |" in (out / "results.md").read_text()
