@@ -141,13 +141,19 @@ def main(argv: list[str] | None = None) -> dict:
         + f", {metrics['num_gaussians']} Gaussians; wrote {trainer.run_dir}"
     )
     if getattr(c, "compare_baseline", False):
-        from metegs.engine.compare import comparison_table, train_baseline, write_comparison
+        from metegs.engine.compare import comparison_table, train_baseline, train_blind, write_comparison
 
         console.print(f"[bold]baseline[/]: plain 3dgs on the same photos -> {trainer.run_dir / 'baseline-3dgs'}")
-        rows = {"3dgs": train_baseline(trainer, console), c.method: metrics}
+        rows = {"3dgs": {**train_baseline(trainer, console), "inputs": "photos"}}
+        if getattr(trainer, "use_clean", False):  # like for like with 3dgs: the same method without clean references
+            console.print(f"[bold]blind[/]: {c.method} without clean references -> {trainer.run_dir / 'blind'}")
+            rows[f"{c.method} (blind)"] = {**train_blind(trainer, console), "inputs": "blind"}
+            rows[f"{c.method} (clean references)"] = {**metrics, "inputs": "clean"}
+        else:
+            rows[c.method] = {**metrics, "inputs": "blind"}
         console.print(comparison_table(rows))
         write_comparison(trainer.run_dir / "comparison.json", rows)
-        metrics = {**metrics, "baseline": rows["3dgs"]}
+        metrics = {**metrics, "baseline": rows["3dgs"], "blind": rows.get(f"{c.method} (blind)")}
     if viewer is not None:
         console.print(f"[bold]viewer[/] still open at {viewer.url}; Ctrl+C quits")
         viewer.serve_forever()

@@ -49,15 +49,32 @@ def train_baseline(trainer, console: Console | None = None) -> dict:
     return baseline.train()
 
 
+def train_blind(trainer, console: Console | None = None) -> dict:
+    """Train ``trainer``'s method again without its clean references (blind: the photos and the met record only),
+    on the same scene, into RUN_DIR/blind; its metrics. This is the run to compare with 3DGS like for like."""
+    config = replace(trainer.config, clean_supervision=False, compare_baseline=False, load_checkpoint=None)
+    blind = type(trainer)(config, run_dir=trainer.run_dir / "blind", console=console, scene=trainer.scene)
+    return blind.train()
+
+
+INPUTS = {
+    "photos": "the photos",
+    "blind": "the photos + the met record",
+    "clean": "the photos + the met record + clean references of the training views (oracle)",
+}
+"""What each kind of comparison row was trained on (the ``inputs`` column and field)."""
+
+
 def comparison_table(rows: dict[str, dict]) -> Table:
-    """A rich table of clean-view metrics, one row per method."""
+    """A rich table of clean-view metrics, one row per method, saying what each was trained on."""
     table = Table(title="clean held-out views")
-    for col in ("method", "PSNR dB", "SSIM", "LPIPS", "Gaussians", "train s"):
-        table.add_column(col, justify="right" if col != "method" else "left")
+    for col in ("method", "trained on", "PSNR dB", "SSIM", "LPIPS", "Gaussians", "train s"):
+        table.add_column(col, justify="left" if col in ("method", "trained on") else "right")
     for name, m in rows.items():
         lp = m.get("lpips")
         table.add_row(
             name,
+            INPUTS[m.get("inputs", "photos")],
             f"{m['psnr']:.2f}",
             f"{m['ssim']:.4f}",
             "null" if lp is None else f"{lp:.4f}",
@@ -68,11 +85,19 @@ def comparison_table(rows: dict[str, dict]) -> Table:
 
 
 def write_comparison(path, rows: dict[str, dict]) -> None:
-    """comparison.json: the metrics of each method and the PSNR / SSIM differences to the first row."""
+    """comparison.json: the metrics of each method, what it was trained on (``inputs``, ``clean_references``) and
+    the PSNR / SSIM differences to the first row."""
     names = list(rows)
     first = rows[names[0]]
     record = {
-        "methods": {n: {k: rows[n].get(k) for k in METRIC_KEYS} for n in names},
+        "methods": {
+            n: {
+                **{k: rows[n].get(k) for k in METRIC_KEYS},
+                "inputs": INPUTS[rows[n].get("inputs", "photos")],
+                "clean_references": rows[n].get("inputs") == "clean",
+            }
+            for n in names
+        },
         "delta_vs_first": {
             n: {"psnr": rows[n]["psnr"] - first["psnr"], "ssim": rows[n]["ssim"] - first["ssim"]} for n in names[1:]
         },
