@@ -11,7 +11,7 @@ from rich.table import Table
 from metegs.config import atomic_write_text
 from metegs.engine.config import TrainConfig
 
-METRIC_KEYS = ("psnr", "ssim", "lpips", "num_gaussians", "train_seconds")
+METRIC_KEYS = ("psnr", "ssim", "lpips", "streak_energy", "contrast_ratio", "num_gaussians", "train_seconds")
 
 
 def baseline_config(config: TrainConfig) -> TrainConfig:

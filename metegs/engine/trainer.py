@@ -167,7 +167,7 @@ class Trainer:
         if not kinds:
             return scene
         from metegs.synth.degrade import degrade_scene
-        from metegs.weather.conditions import describe, scene_metres_per_unit
+        from metegs.weather.conditions import describe, describe_conditions, scene_metres_per_unit
 
         if scene.images is None and scene.image_paths is None:
             raise ConfigError("--degrade needs the scene's images")
@@ -183,7 +183,8 @@ class Trainer:
         self.decide(
             "degrade",
             f"{'+'.join(sorted(kinds, reverse=True))} synthesised on the clean views "
-            f"({self.config.degrade_family} family): {describe(theta)}",
+            f"({self.config.degrade_family} family): "
+            + (describe(theta) if self.config.degrade_family == "physical" else describe_conditions(theta)),
         )
         return degraded
 
@@ -476,6 +477,8 @@ class Trainer:
             "lpips": m["lpips"],
             "lpips_net": m.get("lpips_net"),
             "lpips_reason": m.get("lpips_reason"),
+            "streak_energy": m["streak_energy"],
+            "contrast_ratio": m["contrast_ratio"],
             "num_gaussians": len(self.model),
             "steps": self.step,
             "train_seconds": round(self.train_seconds, 2),

@@ -174,16 +174,25 @@ def evaluate_images(
         clamp: clamp predictions to [0, 1] first (rendered colours may overshoot).
 
     Returns:
-        ``{"psnr": float, "ssim": float, "lpips": float | None, "lpips_net": str | None,
-        "lpips_reason": str | None, "num_views": int,
-        "per_view": {"psnr": [float], "ssim": [float], "lpips": [float] | None}}``.
+        ``{"psnr": float, "ssim": float, "lpips": float | None, "streak_energy": float, "contrast_ratio": float,
+        "lpips_net": str | None, "lpips_reason": str | None, "num_views": int, "per_view": {"psnr": [float],
+        "ssim": [float], "lpips": [float] | None, "streak_energy": [float], "contrast_ratio": [float]}}``
+        (`metegs.eval.residual_weather`: rain and haze left in the prediction, against the target).
     """
     p_views, t_views = _as_views(preds, "preds"), _as_views(targets, "targets")
     if len(p_views) != len(t_views):
         raise ValueError(f"evaluate_images: {len(p_views)} predictions vs {len(t_views)} targets")
     if not p_views:
         raise ValueError("evaluate_images: no views")
-    per: dict[str, list[float] | None] = {"psnr": [], "ssim": [], "lpips": [] if lpips_model is not None else None}
+    from metegs.eval.residual_weather import contrast_ratio, streak_energy
+
+    per: dict[str, list[float] | None] = {
+        "psnr": [],
+        "ssim": [],
+        "lpips": [] if lpips_model is not None else None,
+        "streak_energy": [],
+        "contrast_ratio": [],
+    }
     with torch.no_grad():
         for i, (p, t) in enumerate(zip(p_views, t_views, strict=True)):
             if p.shape != t.shape:
@@ -192,6 +201,8 @@ def evaluate_images(
             t = t.float().to(p.device)
             per["psnr"].append(float(psnr(p, t)))
             per["ssim"].append(float(ssim(p, t)))
+            per["streak_energy"].append(streak_energy(p, t))
+            per["contrast_ratio"].append(contrast_ratio(p, t))
             if lpips_model is not None:
                 model_device = next(lpips_model.parameters()).device
                 per["lpips"].append(float(lpips_model(p.to(model_device), t.to(model_device))))
@@ -203,6 +214,8 @@ def evaluate_images(
         "psnr": mean(per["psnr"]),
         "ssim": mean(per["ssim"]),
         "lpips": mean(per["lpips"]),
+        "streak_energy": mean(per["streak_energy"]),
+        "contrast_ratio": mean(per["contrast_ratio"]),
         "lpips_net": None if lpips_model is None else lpips_model.net,
         "lpips_reason": None if lpips_model is not None else (lpips_reason or "no LPIPS model given"),
         "num_views": len(p_views),

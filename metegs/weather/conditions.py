@@ -150,13 +150,21 @@ def scene_metres_per_unit(config: ConditionsConfig, metric_scale: float | None) 
     return float(value)
 
 
-def describe(theta: Theta) -> str:
-    """One line: rate and class, visibility, streak count, total extinction and its fog / rain-veil parts."""
-    c, r, f = theta.conditions, theta.rain, theta.fog
+def describe_conditions(theta: Theta) -> str:
+    """One line of the met conditions θ was mapped from: rate and class, visibility, wind."""
+    c = theta.conditions
     vis = "none" if c.visibility_m is None else f"{c.visibility_m:.0f} m"
     return (
-        f"{c.precip_mm_per_h:.1f} mm/h ({r.intensity_class}), visibility {vis}, wind "
-        f"{c.wind_speed_m_per_s or 0:.1f} m/s; {r.count if r.active else 0} streaks/view, "
+        f"{c.precip_mm_per_h:.1f} mm/h ({theta.rain.intensity_class}), visibility {vis}, wind "
+        f"{c.wind_speed_m_per_s or 0:.1f} m/s"
+    )
+
+
+def describe(theta: Theta) -> str:
+    """One line: the conditions, streak count, total extinction and its fog / rain-veil parts."""
+    r, f = theta.rain, theta.fog
+    return (
+        f"{describe_conditions(theta)}; {r.count if r.active else 0} streaks/view, "
         f"extinction β {f.beta_total_per_m:.2e}/m (fog {torch.tensor(f.beta_rgb_per_m).mean():.2e}, "
         f"rain veil {f.beta_rain_per_m:.2e})" + (", fog on" if f.active else "")
     )
