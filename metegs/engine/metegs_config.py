@@ -9,6 +9,7 @@ from metegs.densify.depth_prune import DepthPruneConfig
 from metegs.densify.extra_points import ExtraPointsConfig
 from metegs.engine.config import TrainConfig
 from metegs.losses.perceptual import PerceptualLossConfig
+from metegs.losses.robust import RobustMaskConfig
 from metegs.models.gtn import GTNConfig
 from metegs.validate import NON_NEGATIVE, Range
 from metegs.weather.fog_analytic import FogAnalyticConfig
@@ -78,6 +79,8 @@ class MeteGSConfig(TrainConfig):
     """Options of `lens-droplets` (when listed in `weather`)."""
     weather_options: dict[str, dict[str, int | float | bool | str]] = field(default_factory=dict)
     """Options of weather models by name, plugins included (e.g. --weather-options snow max_count 500)."""
+    robust: RobustMaskConfig = field(default_factory=RobustMaskConfig)
+    """Trimmed photometric loss of the weather branch: pixels no model explains in a view are left out of it."""
     compare_baseline: bool = True
     """After training, train plain `3dgs` on the same photos and print both clean-view metrics."""
 

@@ -15,6 +15,7 @@ import torch
 from metegs.engine.metegs_config import MeteGSConfig
 from metegs.engine.optim import adam
 from metegs.engine.trainer import Trainer
+from metegs.losses.robust import inlier_weights
 from metegs.render import RenderSettings
 from metegs.weather.base import WeatherModel, WeatherScene
 from metegs.weather.compose import render_with_weather, scene_transmittance
@@ -50,6 +51,16 @@ class MeteGSTrainer(Trainer):
         else:
             self.decide("clean branch", f"on: L1 weight {c.weights.clean}")
         self.perceptual = self._build_perceptual()
+        r = c.robust
+        self.robust_from = int(round(r.start * c.max_steps)) if r.enabled else None
+        """Step from which the weather branch's photometric loss is trimmed to inliers (None: never)."""
+        self.decide(
+            "robust mask",
+            "off"
+            if not r.enabled
+            else f"on from step {self.robust_from}: pixels {'brighter' if r.brighter_only else 'further'} than "
+            f"{r.k_sigma:g} robust sigmas of their view's residuals (grown by {r.dilate_px} px) are left out",
+        )
         self._feature_cache: dict[int, list[dict[str, torch.Tensor]]] = {}
         self._setup_densifiers()
         self.method_optimizers = self._method_optimizers()
@@ -181,7 +192,11 @@ class MeteGSTrainer(Trainer):
         target = self.target(index, bg)
         stats: dict[str, float] = {}
         weather = self.render_weather(index, bg, training=True)
-        loss = c.weights.photo * self.loss_fn(weather.rgb, target)
+        weights = None
+        if self.robust_from is not None and self.step >= self.robust_from:
+            weights = inlier_weights(target - weather.rgb.detach(), c.robust)
+            stats["inliers"] = float(weights.mean())
+        loss = c.weights.photo * self.loss_fn(weather.rgb, target, weights)
         for m in self.weather_models:
             prior = m.prior(index) if isinstance(m, LearnableTransients) else None
             if prior is not None:

@@ -26,11 +26,18 @@ class PhotometricLoss:
     def __init__(self, config: PhotometricLossConfig | None = None):
         self.config = config or PhotometricLossConfig()
 
-    def __call__(self, pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-        from metegs.eval.metrics import ssim
+    def __call__(self, pred: torch.Tensor, target: torch.Tensor, weights: torch.Tensor | None = None) -> torch.Tensor:
+        """Scalar loss of ``pred`` against ``target`` (both [H, W, 3]); ``weights`` [H, W] (e.g. an inlier mask)
+        restricts both terms to the pixels it weighs, as a weighted mean."""
+        from metegs.eval.metrics import ssim_map
 
         lam = self.config.ssim_lambda
-        l1 = (pred - target).abs().mean()
+        w = None if weights is None else weights[..., None]
+        denom = None if w is None else w.sum().clamp_min(1.0)
+        diff = (pred - target).abs()
+        l1 = diff.mean() if w is None else (diff * w).sum() / (denom * pred.shape[-1])
         if lam == 0:
             return l1
-        return (1.0 - lam) * l1 + lam * (1.0 - ssim(pred, target, crop_border=False))
+        sim = ssim_map(pred, target, crop_border=False)
+        s = sim.mean() if w is None else (sim * w).sum() / (denom * pred.shape[-1])
+        return (1.0 - lam) * l1 + lam * (1.0 - s)

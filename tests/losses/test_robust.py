@@ -1,0 +1,59 @@
+"""The trimmed photometric loss: streak pixels a view cannot explain are left out, the scene's fit is kept."""
+
+from __future__ import annotations
+
+import torch
+
+from metegs.losses.photometric import PhotometricLoss
+from metegs.losses.robust import RobustMaskConfig, inlier_weights
+
+
+def _residual_with_streaks(h=64, w=96):
+    g = torch.Generator().manual_seed(0)
+    residual = torch.randn(h, w, 3, generator=g) * 0.01
+    streaks = torch.zeros(h, w, dtype=torch.bool)
+    for x in range(5, w, 12):  # thin vertical streaks: 8 % of the pixels
+        streaks[10:50, x] = True
+    residual[streaks] += 0.5
+    return residual, streaks
+
+
+def test_streaks_are_outliers_and_the_rest_is_kept():
+    residual, streaks = _residual_with_streaks()
+    w = inlier_weights(residual, RobustMaskConfig(enabled=True))
+    assert w[streaks].max() == 0
+    near = torch.nn.functional.max_pool2d(streaks.float()[None, None], 3, 1, 1)[0, 0].bool()  # dilated by 1 px
+    assert w[~near].mean() > 0.99 and w.mean() > 0.7
+
+
+def test_darker_residuals_stay_unless_asked():
+    residual, streaks = _residual_with_streaks()
+    assert inlier_weights(-residual, RobustMaskConfig(enabled=True))[streaks].min() == 1
+    assert inlier_weights(-residual, RobustMaskConfig(enabled=True, brighter_only=False))[streaks].max() == 0
+
+
+def test_the_threshold_follows_the_fit():
+    """A view fitted badly everywhere (early training) leaves little out."""
+    residual, _ = _residual_with_streaks()
+    noisy = residual + torch.randn(residual.shape, generator=torch.Generator().manual_seed(3)) * 0.3
+    assert inlier_weights(noisy, RobustMaskConfig(enabled=True, dilate_px=0)).mean() > 0.95
+
+
+def test_a_uniform_residual_is_all_inliers():
+    w = inlier_weights(torch.full((32, 48, 3), 0.2), RobustMaskConfig(enabled=True))
+    assert torch.equal(w, torch.ones(32, 48))
+
+
+def test_weighted_loss_ignores_what_the_weights_leave_out():
+    g = torch.Generator().manual_seed(1)
+    pred = torch.rand(24, 32, 3, generator=g, requires_grad=True)
+    target = torch.rand(24, 32, 3, generator=g)
+    weights = torch.ones(24, 32)
+    weights[:, :8] = 0
+    loss = PhotometricLoss()
+    changed = target.clone()
+    changed[:, :2] = 0.0  # further than the 11-tap SSIM window reaches into the kept pixels
+    assert torch.isclose(loss(pred, target, weights), loss(pred, changed, weights))
+    loss(pred, target, weights).backward()
+    assert pred.grad[:, :2].abs().max() == 0 and pred.grad[:, 8:].abs().max() > 0
+    assert torch.isclose(loss(pred, target, torch.ones(24, 32)), loss(pred, target))
