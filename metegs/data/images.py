@@ -153,21 +153,12 @@ def resize_image(img: np.ndarray, width: int, height: int) -> np.ndarray:
 
 def save_image(path: Path, img) -> None:
     """Write an RGB image in [0, 1] (HxWx3 numpy array or tensor) as 8-bit PNG/JPEG, atomically (temp file + rename)."""
-    import os
-    import tempfile
+    from metegs.config import atomic_write_bytes
 
     arr = img.detach().cpu().numpy() if hasattr(img, "detach") else np.asarray(img)
     arr = (np.clip(arr, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     ok, buf = cv2.imencode(path.suffix or ".png", cv2.cvtColor(arr, cv2.COLOR_RGB2BGR))
     if not ok:
         raise DataError(path, "could not encode the image (unsupported extension?)")
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(buf.tobytes())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    atomic_write_bytes(path, buf.tobytes())

@@ -8,15 +8,14 @@ parameters' shapes and finiteness, and (when the checkpoint records them) the me
 from __future__ import annotations
 
 import math
-import os
 import pickle
-import tempfile
 import warnings
 from pathlib import Path
 from typing import Any
 
 import torch
 
+from metegs.config import atomic_output
 from metegs.errors import DataError
 from metegs.gaussians.sh import MAX_SH_DEGREE
 
@@ -29,18 +28,9 @@ PARAM_SHAPES = {"means": (3,), "quats": (4,), "scales": (3,), "opacities": (), "
 
 def save_checkpoint(path: Path, payload: dict[str, Any]) -> Path:
     """Write ``payload`` with torch.save to a temp file, then rename: never a half-written checkpoint."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    os.close(fd)
-    try:
+    with atomic_output(path) as tmp:
         torch.save(payload, tmp)
-        os.chmod(tmp, 0o644)  # mkstemp makes 0600 files; runs are meant to be shared
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    return Path(path)
 
 
 def resolve_checkpoint(path: Path) -> Path:

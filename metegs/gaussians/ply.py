@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import os
 import re
-import tempfile
 import warnings
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
@@ -28,6 +27,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from metegs.config import atomic_output
 from metegs.errors import DataError
 from metegs.gaussians.model import PARAM_NAMES, GaussianModel
 
@@ -128,16 +128,9 @@ def save_ply(
     lines.append("end_header")
     header = ("\n".join(lines) + "\n").encode("ascii")
 
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(header)
-            f.write(np.ascontiguousarray(table).tobytes())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_output(path) as tmp, open(tmp, "wb") as f:
+        f.write(header)
+        f.write(np.ascontiguousarray(table).tobytes())
     return int(table.shape[0])
 
 

@@ -6,15 +6,13 @@ Videos go through OpenCV's writer: MP4 (``mp4v``) when the build has the codec, 
 
 from __future__ import annotations
 
-import os
-import tempfile
 from collections.abc import Callable, Iterable
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from metegs.config import atomic_write_bytes
+from metegs.config import atomic_output, atomic_write_bytes
 from metegs.gaussians.ply import save_ply
 from metegs.viewer.render import Snapshot
 
@@ -70,23 +68,23 @@ def _counted(frames: Iterable[np.ndarray], on_frame: Callable[[int], None] | Non
 def _write_mp4(path: Path, frames: list[np.ndarray], fps: float) -> bool:
     h, w = frames[0].shape[:2]
     w2, h2 = w - w % 2, h - h % 2  # most MP4 codecs want even sizes
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".mp4")
-    os.close(fd)
     try:
-        writer = cv2.VideoWriter(tmp, cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (w2, h2))
-        if not writer.isOpened():
-            return False
-        for frame in frames:
-            writer.write(cv2.cvtColor(np.ascontiguousarray(frame[:h2, :w2]), cv2.COLOR_RGB2BGR))
-        writer.release()
-        if os.path.getsize(tmp) == 0:
-            return False
-        os.replace(tmp, path)
+        with atomic_output(path, ".mp4") as tmp:
+            writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (w2, h2))
+            if not writer.isOpened():
+                raise _NoWriter
+            for frame in frames:
+                writer.write(cv2.cvtColor(np.ascontiguousarray(frame[:h2, :w2]), cv2.COLOR_RGB2BGR))
+            writer.release()
+            if tmp.stat().st_size == 0:
+                raise _NoWriter
         return True
-    except cv2.error:
+    except (cv2.error, _NoWriter):
         return False
-    finally:
-        Path(tmp).unlink(missing_ok=True)
+
+
+class _NoWriter(Exception):
+    """OpenCV could not write the format here (the caller falls back to another)."""
 
 
 def _write_gif(path: Path, frames: list[np.ndarray], fps: float) -> bool:
@@ -96,15 +94,11 @@ def _write_gif(path: Path, frames: list[np.ndarray], fps: float) -> bool:
             animation = cv2.Animation()
             animation.frames = [cv2.cvtColor(np.ascontiguousarray(f), cv2.COLOR_RGB2BGR) for f in frames]
             animation.durations = [duration_ms] * len(frames)
-            fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".gif")
-            os.close(fd)
-            try:
-                if cv2.imwriteanimation(tmp, animation) and os.path.getsize(tmp) > 0:
-                    os.replace(tmp, path)
-                    return True
-            finally:
-                Path(tmp).unlink(missing_ok=True)
-        except cv2.error:
+            with atomic_output(path, ".gif") as tmp:
+                if not (cv2.imwriteanimation(str(tmp), animation) and tmp.stat().st_size > 0):
+                    raise _NoWriter
+            return True
+        except (cv2.error, _NoWriter):
             pass
     try:
         import imageio.v3 as iio

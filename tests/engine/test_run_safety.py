@@ -154,3 +154,31 @@ def test_resume_with_another_split_of_the_same_scene_is_accepted(tmp_path):
     other_split = replace(TINY, test_every=2)
     again = replace(first.config, dataset=other_split, load_checkpoint=first.run_dir / "checkpoints", max_steps=4)
     assert again.setup().step == 2
+
+
+def test_every_output_gets_the_permissions_the_umask_gives(tmp_path):
+    from metegs.config import NEW_FILE_MODE
+
+    mask = os.umask(0o022)
+    os.umask(mask)
+    assert NEW_FILE_MODE == 0o666 & ~mask
+    trainer = tiny(tmp_path, experiment_name="run", save_renders=True).setup()
+    trainer.train()
+    files = [p for p in trainer.run_dir.rglob("*") if p.is_file()]
+    assert {p.suffix for p in files} >= {".yml", ".json", ".ckpt", ".ply", ".png"}
+    wrong = {str(p.relative_to(trainer.run_dir)): oct(p.stat().st_mode & 0o777) for p in files}
+    assert all(mode == oct(NEW_FILE_MODE) for mode in wrong.values()), wrong
+
+
+def test_a_stricter_umask_is_honoured(tmp_path):
+    code = (
+        "import os; os.umask(0o027)\n"
+        "from pathlib import Path\n"
+        "from metegs.config import atomic_write_text\n"
+        "from metegs.data.images import save_image\n"
+        "import numpy as np\n"
+        f"atomic_write_text(Path({str(tmp_path)!r}) / 'a.json', '{{}}')\n"
+        f"save_image(Path({str(tmp_path)!r}) / 'b.png', np.zeros((4, 4, 3)))\n"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True)
+    assert {oct(p.stat().st_mode & 0o777) for p in tmp_path.iterdir()} == {oct(0o640)}

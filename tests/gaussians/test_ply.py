@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 import warnings
 from pathlib import Path
 
@@ -228,7 +227,7 @@ def test_failed_write_leaves_existing_file_untouched(tmp_path, monkeypatch):
     save_ply(random_model(8, 1, seed=1), path)
     original = path.read_bytes()
 
-    real_fdopen = os.fdopen
+    real_open = open
 
     class FailingFile:
         """Writes the header, then fails on the data (a full disk midway)."""
@@ -248,7 +247,7 @@ def test_failed_write_leaves_existing_file_untouched(tmp_path, monkeypatch):
         def __exit__(self, *exc):
             self.f.close()
 
-    monkeypatch.setattr(ply_mod.os, "fdopen", lambda fd, mode: FailingFile(real_fdopen(fd, mode)))
+    monkeypatch.setattr(ply_mod, "open", lambda file, mode: FailingFile(real_open(file, mode)), raising=False)
     with pytest.raises(OSError, match="disk full"):
         save_ply(random_model(50, 3, seed=2), path)
     monkeypatch.undo()

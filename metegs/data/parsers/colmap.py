@@ -18,8 +18,6 @@ not undistorted.
 from __future__ import annotations
 
 import hashlib
-import os
-import tempfile
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,6 +27,7 @@ import cv2
 import numpy as np
 
 from metegs.cameras import Cameras, to_homogeneous
+from metegs.config import atomic_output
 from metegs.data.config import DatasetConfig
 from metegs.data.images import load_image
 from metegs.data.parsers.clean import find_clean_paths
@@ -149,18 +148,11 @@ def _cache_key(src: Path, model: str, params: np.ndarray) -> str:
 
 
 def _write_atomic(dst: Path, rgb: np.ndarray) -> None:
-    """Write float RGB [H, W, 3] as 16-bit PNG via a temporary file and os.replace."""
-    dst.parent.mkdir(parents=True, exist_ok=True)
+    """Write float RGB [H, W, 3] as 16-bit PNG, atomically."""
     bgr16 = np.round(np.clip(rgb[:, :, ::-1], 0.0, 1.0) * 65535.0).astype(np.uint16)
-    fd, tmp = tempfile.mkstemp(suffix=".png", dir=dst.parent)
-    os.close(fd)
-    try:
-        if not cv2.imwrite(tmp, bgr16):
+    with atomic_output(dst, ".png") as tmp:
+        if not cv2.imwrite(str(tmp), bgr16):
             raise DataError(dst, "cannot write the undistorted image")
-        os.replace(tmp, dst)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
 
 
 def undistort_to_cache(src: Path, cache: Path, name: str, model: str, params: np.ndarray, remap: tuple) -> Path:
