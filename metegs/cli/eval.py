@@ -12,6 +12,7 @@ from rich.console import Console
 
 from metegs.cli import run_cli
 from metegs.config import write_result
+from metegs.engine.run import run_folder
 from metegs.errors import MetegsError
 
 
@@ -20,7 +21,7 @@ class EvalArgs:
     """Evaluate a trained run."""
 
     run_dir: tyro.conf.Positional[Path]
-    """Run folder (holds config.yml and checkpoints/)."""
+    """Run folder (holds config.yml and checkpoints/), or its config.yml."""
     checkpoint: Path | None = None
     """Checkpoint to evaluate (default: the latest in the run)."""
     ply: Path | None = None
@@ -33,6 +34,9 @@ class EvalArgs:
     """Where to write the metrics JSON (default: RUN_DIR/eval.json)."""
     device: str | None = None
     """Torch device (default: the run's)."""
+
+    def __post_init__(self) -> None:
+        self.run_dir = run_folder(self.run_dir)
 
 
 def main(args: EvalArgs) -> dict:

@@ -12,6 +12,7 @@ from rich.console import Console
 from rich.progress import track
 
 from metegs.cli import run_cli
+from metegs.engine.run import run_folder
 
 
 @dataclass
@@ -19,7 +20,7 @@ class RenderArgs:
     """Render views of a trained run."""
 
     run_dir: tyro.conf.Positional[Path]
-    """Run folder (holds config.yml and checkpoints/)."""
+    """Run folder (holds config.yml and checkpoints/), or its config.yml."""
     split: Literal["test", "train", "all"] = "test"
     """Which views to render."""
     checkpoint: Path | None = None
@@ -32,6 +33,9 @@ class RenderArgs:
     """Also write normalised depth maps (<name>_depth.png)."""
     device: str | None = None
     """Torch device (default: the run's)."""
+
+    def __post_init__(self) -> None:
+        self.run_dir = run_folder(self.run_dir)
 
 
 def main(args: RenderArgs) -> Path:

@@ -1,7 +1,7 @@
 """`metegs-train <method> [flags]`: one tyro subcommand per registered method.
 
-`--config FILE.yaml` (anywhere on the line) applies a YAML of overrides, such as a run's saved
-config.yml, before the command-line flags, which win.
+`--config FILE.yaml` (or `--load-config`, anywhere on the line) applies a YAML of overrides, such as a run's
+saved config.yml, before the command-line flags, which win.
 """
 
 from __future__ import annotations
@@ -48,19 +48,24 @@ def components_help() -> str:
     return "\n".join(lines)
 
 
+CONFIG_FLAGS = ("--config", "--load-config")
+"""Flags of the YAML applied before the command line (``--load-config`` as nerfstudio's ``ns-train`` spells it)."""
+
+
 def pop_config_flag(argv: list[str]) -> tuple[list[str], Path | None]:
-    """Remove ``--config PATH`` / ``--config=PATH`` from argv; return the rest and the path."""
+    """Remove ``--config PATH`` / ``--config=PATH`` (or ``--load-config``) from argv; return the rest and the path."""
     rest, path = [], None
     it = iter(range(len(argv)))
     for i in it:
         arg = argv[i]
-        if arg == "--config":
+        flag, eq, value = arg.partition("=")
+        if flag in CONFIG_FLAGS and eq:
+            path = Path(value)
+        elif arg in CONFIG_FLAGS:
             if i + 1 >= len(argv):
-                raise MetegsError("--config needs a YAML file path")
+                raise MetegsError(f"{arg} needs a YAML file path")
             path = Path(argv[i + 1])
             next(it, None)
-        elif arg.startswith("--config="):
-            path = Path(arg.split("=", 1)[1])
         else:
             rest.append(arg)
     return rest, path

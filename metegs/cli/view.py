@@ -10,6 +10,7 @@ import tyro
 from rich.console import Console
 
 from metegs.cli import run_cli
+from metegs.engine.run import run_folder
 from metegs.validate import Range, check_config
 
 
@@ -18,7 +19,7 @@ class ViewArgs:
     """View a trained run in the browser (viser), rendered by the run's rasteriser."""
 
     run_dir: tyro.conf.Positional[Path]
-    """Run folder (holds config.yml and checkpoints/)."""
+    """Run folder (holds config.yml and checkpoints/), or its config.yml."""
     host: str = "127.0.0.1"
     """Address to bind; 0.0.0.0 exposes the viewer to the network (deliberately)."""
     port: Annotated[int, Range(0, 65535)] = 7007
@@ -36,6 +37,7 @@ class ViewArgs:
 
     def __post_init__(self) -> None:
         check_config(self)
+        self.run_dir = run_folder(self.run_dir)
 
 
 def main(args: ViewArgs, block: bool = True):

@@ -10,9 +10,16 @@ from metegs.errors import ConfigError, DataError
 from metegs.registry import registry
 
 
+def run_folder(path: Path) -> Path:
+    """The run folder ``path`` names: itself, or the folder of its ``config.yml`` (as nerfstudio users pass it)."""
+    path = Path(path)
+    return path.parent if path.suffix in (".yml", ".yaml") and not path.is_dir() else path
+
+
 def load_run_config(run_dir: Path):
-    """The TrainConfig saved in ``run_dir/config.yml`` (rebuilt on the method's defaults)."""
-    path = Path(run_dir) / "config.yml"
+    """The TrainConfig saved in ``run_dir/config.yml`` (rebuilt on the method's defaults); ``run_dir`` may be the
+    config.yml itself."""
+    path = run_folder(run_dir) / "config.yml"
     if not path.is_file():
         raise DataError(path, "no config.yml: not a metegs run folder")
     data = load_yaml(path)
@@ -30,7 +37,7 @@ def load_run(run_dir: Path, checkpoint: Path | None = None, ply: Path | None = N
     """A Trainer set up as the run was, holding the Gaussians of ``ply``, ``checkpoint`` or the latest checkpoint."""
     from metegs.gaussians.ply import load_ply
 
-    run_dir = Path(run_dir)
+    run_dir = run_folder(run_dir)
     config = load_run_config(run_dir)
     # the Gaussians go to the Trainer itself, which then skips building (maybe triangulating) the initial ones
     source = None if ply is not None else checkpoint or run_dir / "checkpoints"

@@ -66,6 +66,8 @@ def test_bad_config_file_names_it(tmp_path):
 def test_pop_config_flag_forms():
     assert pop_config_flag(["a", "--config", "x.yml", "b"]) == (["a", "b"], Path("x.yml"))
     assert pop_config_flag(["--config=y.yml"]) == ([], Path("y.yml"))
+    assert pop_config_flag(["--load-config", "RUN/config.yml", "b"]) == (["b"], Path("RUN/config.yml"))
+    assert pop_config_flag(["--load-config=z.yml"]) == ([], Path("z.yml"))
 
 
 def test_help_lists_every_component_kind_and_marks_plugins():

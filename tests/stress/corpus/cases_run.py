@@ -202,6 +202,12 @@ CASES = [
     Case("eval-run-scene-ply", "metegs-eval", lambda f: [trained_run(f), "--ply", Path(f) / "run/scene.ply"],
          "correct", check=_evaluated),  # fmt: skip
     Case("resume-explicitly-in-same-folder", "metegs-train", _resume, "correct", check=_resumed),
+    Case("eval-run-given-as-its-config-yml", "metegs-eval", lambda f: [trained_run(f) / "config.yml"], "correct",
+         check=_evaluated),  # fmt: skip
+    Case("render-run-given-as-its-config-yml", "metegs-render", lambda f: [trained_run(f) / "config.yml"],
+         "correct", check=_rendered),  # fmt: skip
+    Case("train-load-config-of-a-run", "metegs-train",
+         lambda f: ["--load-config", trained_run(f) / "config.yml", *_train(f)[1:]], "correct", check=_finished),  # fmt: skip
     Case("train-config-file", "metegs-train", lambda f: [*_config(f, "max_steps: 4\n"), *_train(f)[1:]],
          "correct", check=_finished),  # fmt: skip
     # crafted checkpoints: no code runs through any command
