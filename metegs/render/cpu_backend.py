@@ -29,6 +29,7 @@ import torch
 from torch.autograd.function import once_differentiable
 
 from metegs.cameras import Cameras
+from metegs.config import atomic_write_bytes
 from metegs.errors import MetegsError
 from metegs.gaussians.model import GaussianSet
 from metegs.render.base import RenderOutput, RenderSettings
@@ -53,7 +54,11 @@ EXTENSION_NAME = f"metegs_cpu_composite_{_TORCH_TAG}"
 # from the main thread with torch's thread count, on torch's own OpenMP team: hence -fopenmp where torch runs on
 # GNU OpenMP (`openmp_flags`).
 CFLAGS = [
-    "-O3", "-march=native", "-mprefer-vector-width=512", "-ffp-contract=off", "-fno-trapping-math",
+    "-O3",
+    "-march=native",
+    "-mprefer-vector-width=512",
+    "-ffp-contract=off",
+    "-fno-trapping-math",
 ]
 
 
@@ -80,13 +85,40 @@ def _cpu_tag() -> str:
     return f"{platform.machine()}-{hashlib.sha1(info.encode()).hexdigest()[:10]}"
 
 
-def build_directory() -> Path:
-    """Where the extension is built and cached (one folder per torch version and CPU)."""
+def source_digest(cflags: list[str]) -> str:
+    """Short hash of what the built extension depends on: the kernel sources' names and bytes, the compiler flags,
+    Python's and torch's versions."""
+    h = hashlib.sha1()
+    for f in SOURCES + HEADERS:
+        h.update(f.name.encode() + b"\0" + f.read_bytes() + b"\0")
+    h.update(" ".join([*cflags, platform.python_version(), torch.__version__]).encode())
+    return h.hexdigest()[:12]
+
+
+def build_directory(cflags: list[str] | None = None) -> Path:
+    """Where the extension is built and cached: one folder per CPU and `source_digest`, so that two checkouts or
+    installs with the same kernels share one build and different kernels never rebuild each other's
+    (``METEGS_EXTENSIONS_DIR`` overrides it)."""
     override = os.environ.get("METEGS_EXTENSIONS_DIR")
     if override:
         return Path(override).expanduser()
     cache = Path(os.environ.get("XDG_CACHE_HOME") or "~/.cache").expanduser()
-    return cache / "metegs" / "torch_extensions" / _TORCH_TAG / _cpu_tag()
+    digest = source_digest(compile_flags()[0] if cflags is None else cflags)
+    return cache / "metegs" / "torch_extensions" / _TORCH_TAG / f"{_cpu_tag()}-{digest}"
+
+
+def stage_sources(build_dir: Path) -> tuple[Path, bool]:
+    """(folder, changed): copies of the kernel sources in ``build_dir/src``, rewritten where their bytes differ from
+    the installation's. The build reads these copies, so its ninja file names no checkout's path."""
+    folder = Path(build_dir) / "src"
+    folder.mkdir(parents=True, exist_ok=True)
+    changed = False
+    for f in SOURCES + HEADERS:
+        data, copy = f.read_bytes(), folder / f.name
+        if not copy.is_file() or copy.read_bytes() != data:
+            atomic_write_bytes(copy, data)
+            changed = True
+    return folder, changed
 
 
 OPENMP_RUNTIME = re.compile(r"lib(g|i)?omp[\d.-]")
@@ -126,8 +158,10 @@ def _describe_build_failure(exc: Exception) -> str:
     if isinstance(exc, CpuExtensionError):
         reason = exc.args[0]
     elif isinstance(exc, subprocess.CalledProcessError | FileNotFoundError):
-        reason = (f"the C++ compiler ({os.environ.get('CXX', 'c++')}) is missing or does not work "
-                  f"(install g++ or set CXX): {type(exc).__name__}: {_tail(str(exc))}")
+        reason = (
+            f"the C++ compiler ({os.environ.get('CXX', 'c++')}) is missing or does not work "
+            f"(install g++ or set CXX): {type(exc).__name__}: {_tail(str(exc))}"
+        )
     else:
         reason = f"{type(exc).__name__}: {_tail(str(exc))}"
     return f"cannot build the metegs CPU rasteriser extension (in {CSRC}): {reason}"
@@ -203,25 +237,25 @@ def _build():
         cpp_extension.verify_ninja_availability()
     except RuntimeError as exc:
         raise CpuExtensionError("the `ninja` build tool is required (pip install ninja)") from exc
-    build_dir = build_directory()
-    build_dir.mkdir(parents=True, exist_ok=True)
     cflags, ldflags = compile_flags()
-    built, ninja_file = build_dir / f"{EXTENSION_NAME}.so", build_dir / "build.ninja"
-    stale = (
-        not built.exists()
-        or built.stat().st_mtime < max(f.stat().st_mtime for f in SOURCES + HEADERS)
-        or not ninja_file.exists()
-        or " ".join(cflags) not in ninja_file.read_text(errors="replace")
-    )
-    if stale and not _announced.is_set():
-        _announced.set()
-        print(f"compiling the metegs CPU rasteriser (first use, ~1 min) in {build_dir} ...",
-              file=sys.stderr, flush=True)
+    build_dir = build_directory(cflags)
     with build_lock(build_dir):
+        src, changed = stage_sources(build_dir)
+        built, ninja_file = build_dir / f"{EXTENSION_NAME}.so", build_dir / "build.ninja"
+        stale = (
+            changed
+            or not built.exists()
+            or not ninja_file.exists()
+            or " ".join(cflags) not in ninja_file.read_text(errors="replace")
+        )
+        if stale and not _announced.is_set():
+            _announced.set()
+            print(f"compiling the metegs CPU rasteriser (first use, ~1 min) in {build_dir} ...",
+                  file=sys.stderr, flush=True)  # fmt: skip
         return cpp_extension.load(
             name=EXTENSION_NAME,
-            sources=[str(f) for f in SOURCES],
-            extra_include_paths=[str(CSRC)],
+            sources=[str(src / f.name) for f in SOURCES],
+            extra_include_paths=[str(src)],
             extra_ldflags=ldflags,
             extra_cflags=cflags,
             build_directory=str(build_dir),
@@ -239,11 +273,14 @@ class ProjectShade(torch.autograd.Function):
     """Fused projection + SH colours; same outputs as `project_gaussians` + `gaussian_colors`."""
 
     @staticmethod
-    def forward(ctx, means, quats, scales, opacities, sh, viewmat, K, campos, width, height, near, far, eps2d,
-                sh_degree):
+    def forward(
+        ctx, means, quats, scales, opacities, sh, viewmat, K, campos, width, height, near, far, eps2d, sh_degree
+    ):
         ext = load_extension()
         args = (viewmat, K, campos, int(width), int(height), float(near), float(far), float(eps2d), int(sh_degree))
-        means2d, conics, depths, colors, radii, extents = ext.project_forward(means, quats, scales, opacities, sh, *args)
+        means2d, conics, depths, colors, radii, extents = ext.project_forward(
+            means, quats, scales, opacities, sh, *args
+        )
         ctx.save_for_backward(means, quats, scales, opacities, sh)
         ctx.args = args
         ctx.mark_non_differentiable(radii, extents)
@@ -254,8 +291,10 @@ class ProjectShade(torch.autograd.Function):
     def backward(ctx, g_means2d, g_conics, g_depths, g_colors, _g_radii, _g_extents):
         means, quats, scales, opacities, sh = ctx.saved_tensors
         n = means.shape[0]
-        grads = [g if g is not None else means.new_zeros(shape)
-                 for g, shape in ((g_means2d, (n, 2)), (g_conics, (n, 3)), (g_depths, (n,)), (g_colors, (n, 3)))]
+        grads = [
+            g if g is not None else means.new_zeros(shape)
+            for g, shape in ((g_means2d, (n, 2)), (g_conics, (n, 3)), (g_depths, (n,)), (g_colors, (n, 3)))
+        ]
         g_means, g_quats, g_scales, g_sh = load_extension().project_backward(
             means, quats, scales, opacities, sh, *ctx.args, *grads
         )
@@ -266,8 +305,21 @@ class CompositeTiles(torch.autograd.Function):
     """Differentiable tile compositing; same inputs/outputs as `torch_backend.composite_tiles`."""
 
     @staticmethod
-    def forward(ctx, means2d, conics, opacities, colors, depths, gaussian_ids, offsets,
-                tiles_x, tiles_y, width, height, rows=None):
+    def forward(
+        ctx,
+        means2d,
+        conics,
+        opacities,
+        colors,
+        depths,
+        gaussian_ids,
+        offsets,
+        tiles_x,
+        tiles_y,
+        width,
+        height,
+        rows=None,
+    ):
         ext = load_extension()
         color, alpha, depth, t_final, last = ext.forward(
             means2d, conics, opacities, colors, depths, gaussian_ids, offsets, tiles_x, tiles_y, width, height, rows
@@ -283,8 +335,23 @@ class CompositeTiles(torch.autograd.Function):
         means2d, conics, opacities, colors, depths, ids, offsets, t_final, last = ctx.saved_tensors
         tiles_x, tiles_y, width, height = ctx.dims
         grads = load_extension().backward(
-            means2d, conics, opacities, colors, depths, ids, offsets, t_final, last,
-            g_color, g_alpha, g_depth, tiles_x, tiles_y, width, height, ctx.rows,
+            means2d,
+            conics,
+            opacities,
+            colors,
+            depths,
+            ids,
+            offsets,
+            t_final,
+            last,
+            g_color,
+            g_alpha,
+            g_depth,
+            tiles_x,
+            tiles_y,
+            width,
+            height,
+            ctx.rows,
         )  # means2d, conics, opacities, colours, depths
         out = tuple(g if need else None for g, need in zip(grads, ctx.needs_input_grad, strict=False))
         return (*out, None, None, None, None, None, None, None)
@@ -323,8 +390,17 @@ def composite_tiles_cpu(
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Compiled equivalent of `torch_backend.composite_tiles`: -> (color [H, W, D], alpha [H, W], depth_sum [H, W])."""
     return CompositeTiles.apply(
-        means2d, conics, opacities, colors, depths, bins.gaussian_ids, bins.offsets,
-        bins.tiles_x, bins.tiles_y, int(width), int(height),
+        means2d,
+        conics,
+        opacities,
+        colors,
+        depths,
+        bins.gaussian_ids,
+        bins.offsets,
+        bins.tiles_x,
+        bins.tiles_y,
+        int(width),
+        int(height),
     )
 
 
@@ -353,13 +429,31 @@ class CpuRasterizer:
         K = camera.intrinsics()[0].to(g.means)
         campos = camera.centers[0].to(g.means)
         means2d, conics, depths, colors, radii, extents = ProjectShade.apply(
-            g.means, g.quats, g.scales, g.opacities, g.sh, viewmat, K, campos, width, height,
-            s.near, s.far, s.eps2d, resolve_sh_degree(g, s),
+            g.means,
+            g.quats,
+            g.scales,
+            g.opacities,
+            g.sh,
+            viewmat,
+            K,
+            campos,
+            width,
+            height,
+            s.near,
+            s.far,
+            s.eps2d,
+            resolve_sh_degree(g, s),
         )
         if means2d.requires_grad:
             means2d.retain_grad()
         ids, offsets, rows = load_extension().bin_tiles(
-            means2d.detach(), conics.detach(), g.opacities.detach(), extents, depths.detach(), width, height,
+            means2d.detach(),
+            conics.detach(),
+            g.opacities.detach(),
+            extents,
+            depths.detach(),
+            width,
+            height,
             self.cull_tiles,
         )
         bins = TileBins((width + TILE_SIZE - 1) // TILE_SIZE, (height + TILE_SIZE - 1) // TILE_SIZE, ids, offsets)
@@ -370,5 +464,13 @@ class CpuRasterizer:
         if background.requires_grad:  # a learned background: its gradient comes from the torch ops
             return finish_render(color, alpha, depth_sum, s, radii, means2d, bins.num_intersections)
         rgb, depth = FinishRender.apply(color, alpha, depth_sum, background)
-        return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, radii=radii, means2d=means2d,
-                            num_intersections=bins.num_intersections, width=width, height=height)
+        return RenderOutput(
+            rgb=rgb,
+            alpha=alpha,
+            depth=depth,
+            radii=radii,
+            means2d=means2d,
+            num_intersections=bins.num_intersections,
+            width=width,
+            height=height,
+        )

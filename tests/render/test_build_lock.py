@@ -82,3 +82,37 @@ def test_a_build_killed_half_way_does_not_hang_the_next(tmp_path):
     assert second.returncode == 0, second.stderr[-2000:]
     assert "loaded" in second.stdout
     assert "killed before it finished" in second.stderr
+
+
+def _checkout_copy(monkeypatch, cb, folder):
+    """Point the backend at a copy of its kernel sources in ``folder`` (another checkout of the same code)."""
+    import shutil
+
+    shutil.copytree(cb.CSRC, folder)
+    monkeypatch.setattr(cb, "SOURCES", [folder / f.name for f in cb.SOURCES])
+    monkeypatch.setattr(cb, "HEADERS", [folder / f.name for f in cb.HEADERS])
+
+
+def test_checkouts_with_the_same_kernels_share_one_build_folder(tmp_path, monkeypatch):
+    from metegs.render import cpu_backend as cb
+
+    monkeypatch.delenv("METEGS_EXTENSIONS_DIR", raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    here = cb.build_directory(["-O3"])
+    _checkout_copy(monkeypatch, cb, tmp_path / "other-checkout")
+    assert cb.build_directory(["-O3"]) == here
+    assert cb.build_directory(["-O2"]) != here  # other flags, another build
+    edited = cb.SOURCES[0]
+    edited.write_bytes(edited.read_bytes() + b"\n// edited\n")
+    assert cb.build_directory(["-O3"]) != here  # other kernels, another build: neither rebuilds the other's
+
+
+def test_the_build_reads_copies_that_name_no_checkout(tmp_path, monkeypatch):
+    from metegs.render import cpu_backend as cb
+
+    src, changed = cb.stage_sources(tmp_path)
+    assert changed and src == tmp_path / "src"
+    assert all((src / f.name).read_bytes() == f.read_bytes() for f in cb.SOURCES + cb.HEADERS)
+    assert cb.stage_sources(tmp_path) == (src, False)  # nothing rewritten: ninja sees nothing new
+    _checkout_copy(monkeypatch, cb, tmp_path / "other-checkout")
+    assert cb.stage_sources(tmp_path) == (src, False)
