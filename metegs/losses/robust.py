@@ -28,7 +28,7 @@ MAD_TO_SIGMA = 1.4826
 class RobustMaskConfig:
     """Trimmed photometric loss of the weather branch (outlier mask from a robust residual scale)."""
 
-    enabled: bool = False
+    enabled: bool = True
     """Leave out of each view's photometric loss the pixels the model cannot explain (outlier mask)."""
     k_sigma: Annotated[float, Range(1.0)] = 3.0
     """A residual above this many robust standard deviations of its view's residuals is an outlier."""
