@@ -2,7 +2,7 @@
 
 ``results.md`` holds, per scene, the comparison table (rows: methods; columns: conditions x PSNR↑ /
 SSIM↑ / LPIPS↓; the best value of a column in **bold**, the second <u>underlined</u>; rows marked
-*oracle*, which see clean photos, are not ranked), one detail table per condition (PSNR / SSIM / LPIPS,
+*oracle*, which see clean photos or clean references, are not ranked), one detail table per condition (PSNR / SSIM / LPIPS,
 training time, Gaussian count, render frames/s), the ablation table, the conditions (record, time, θ) and
 the checks. ``plots/<scene>__<condition>.png`` draws every method's test PSNR against its wall time
 (training, plus the restoration time for restored photos; the clean-photo rows dashed).
@@ -285,7 +285,7 @@ def markdown_report(results: dict, plots: dict[tuple[str, str], Path] | None = N
         f"torch {host.get('torch')}, "
         f"{host.get('threads')} threads, {host.get('cuda') or 'CPU'}. PSNR / SSIM / LPIPS on the clean held-out "
         "views; time = training seconds (+ restoration seconds for restored photos); render FPS of the final "
-        "model over the test views. Best in **bold**, second <u>underlined</u>; *oracle* rows (clean photos) "
+        "model over the test views. Best in **bold**, second <u>underlined</u>; *oracle* rows (which see clean photos or clean references) "
         "are not ranked.",
         "",
         "## Conditions",

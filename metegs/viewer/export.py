@@ -1,11 +1,14 @@
 """What the viewer writes: the current view as PNG, the clean scene as PLY and weather-sweep videos.
 
-Videos go through OpenCV's writer: MP4 (``mp4v``) when the build has the codec, else an animated GIF
-(``cv2.imwriteanimation``, then imageio), else a folder of PNG frames; the path written says which.
+MP4s are H.264 (yuv420p, even sizes, ``+faststart``) through imageio-ffmpeg's own ffmpeg (the ``video`` extra),
+so they play in browsers. Without it (or when it fails) OpenCV writes ``mp4v``, which browsers such as Chromium refuse,
+with a `BrowserVideoWarning` once; when OpenCV cannot write MP4 either, an animated GIF (``cv2.imwriteanimation``,
+then imageio), else a folder of PNG frames; the path written says which.
 """
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable, Iterable
 from pathlib import Path
 
@@ -39,7 +42,8 @@ def write_video(
 ) -> Path:
     """Write RGB uint8 frames [H, W, 3] (all one size) as ``path`` (.mp4 or .gif) -> the file actually written.
 
-    MP4 falls back to GIF when OpenCV cannot encode ``mp4v``; GIF falls back to PNG frames in a folder.
+    MP4 is H.264 with imageio-ffmpeg, else OpenCV's ``mp4v`` (with a `BrowserVideoWarning`), else GIF; GIF falls back
+    to PNG frames in a folder.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -65,16 +69,78 @@ def _counted(frames: Iterable[np.ndarray], on_frame: Callable[[int], None] | Non
         yield frame
 
 
+class BrowserVideoWarning(UserWarning):
+    """The MP4 was written as ``mp4v``, which browsers do not play (imageio-ffmpeg's H.264 was not available)."""
+
+
+MP4V_HINT = 'pip install "metegs[video]"'
+_warned_mp4v = False  # the mp4v warning is given once per process
+
+
 def _write_mp4(path: Path, frames: list[np.ndarray], fps: float) -> bool:
     h, w = frames[0].shape[:2]
-    w2, h2 = w - w % 2, h - h % 2  # most MP4 codecs want even sizes
+    w2, h2 = w - w % 2, h - h % 2  # H.264 in yuv420p (and most MP4 codecs) want even sizes
+    frames = [np.ascontiguousarray(f[:h2, :w2]) for f in frames]
+    why = _write_h264(path, frames, fps)
+    if why is None:
+        return True
+    if not _write_mp4v(path, frames, fps):
+        return False
+    global _warned_mp4v
+    if not _warned_mp4v:
+        _warned_mp4v = True
+        warnings.warn(
+            f"{path}: written as OpenCV's mp4v ({why}); browsers such as Chromium will not play it. "
+            f"For H.264: {MP4V_HINT}",
+            BrowserVideoWarning,
+            stacklevel=3,
+        )
+    return True
+
+
+def _write_h264(path: Path, frames: list[np.ndarray], fps: float) -> str | None:
+    """H.264 / yuv420p / +faststart through imageio-ffmpeg -> None when written, else why not."""
+    try:
+        import imageio_ffmpeg
+    except ImportError:
+        return "imageio-ffmpeg is not installed"
+    h, w = frames[0].shape[:2]
     try:
         with atomic_output(path, ".mp4") as tmp:
-            writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (w2, h2))
+            writer = imageio_ffmpeg.write_frames(
+                str(tmp),
+                (w, h),
+                fps=float(fps),
+                codec="libx264",
+                pix_fmt_in="rgb24",
+                pix_fmt_out="yuv420p",
+                macro_block_size=2,  # the sizes are even already: no rescaling
+                quality=8,
+                ffmpeg_log_level="error",
+                output_params=["-movflags", "+faststart"],
+            )
+            writer.send(None)  # starts ffmpeg
+            try:
+                for frame in frames:
+                    writer.send(frame)
+            finally:
+                writer.close()
+            if tmp.stat().st_size == 0:
+                raise OSError("ffmpeg wrote an empty file")
+        return None
+    except Exception as exc:  # ffmpeg missing for this platform, no libx264, ...: OpenCV's mp4v instead
+        return f"imageio-ffmpeg failed: {exc}".splitlines()[0]
+
+
+def _write_mp4v(path: Path, frames: list[np.ndarray], fps: float) -> bool:
+    h, w = frames[0].shape[:2]
+    try:
+        with atomic_output(path, ".mp4") as tmp:
+            writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (w, h))
             if not writer.isOpened():
                 raise _NoWriter
             for frame in frames:
-                writer.write(cv2.cvtColor(np.ascontiguousarray(frame[:h2, :w2]), cv2.COLOR_RGB2BGR))
+                writer.write(cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
             writer.release()
             if tmp.stat().st_size == 0:
                 raise _NoWriter
