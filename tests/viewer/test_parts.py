@@ -154,6 +154,61 @@ def test_video_writer_falls_back(tmp_path, monkeypatch):
     assert folder.is_dir() and len(list(folder.glob("frame-*.png"))) == 4
 
 
+def _top_level_boxes(path) -> list[str]:
+    """The MP4's top-level box types in file order (``moov`` before ``mdat``: ``+faststart``)."""
+    data, boxes, i = path.read_bytes(), [], 0
+    while i + 8 <= len(data):
+        size, kind = int.from_bytes(data[i : i + 4], "big"), data[i + 4 : i + 8].decode("latin-1")
+        if size == 1:
+            size = int.from_bytes(data[i + 8 : i + 16], "big")
+        boxes.append(kind)
+        if size < 8:
+            break
+        i += size
+    return boxes
+
+
+def test_mp4_is_h264_for_browsers(tmp_path):
+    imageio_ffmpeg = pytest.importorskip("imageio_ffmpeg", reason="H.264 export needs imageio-ffmpeg")
+
+    ramp = np.linspace(0, 80, 67)[None, :, None] + np.zeros((49, 67, 3))  # odd sizes: cropped to even
+    frames = [(ramp + 25 * i).astype(np.uint8) for i in range(7)]  # each frame brighter than the last
+    path = write_video(tmp_path / "sweep.mp4", frames, fps=7)
+    assert path == tmp_path / "sweep.mp4"
+    reader = imageio_ffmpeg.read_frames(str(path))
+    meta = next(reader)
+    assert meta["codec"].startswith("h264") and meta["pix_fmt"].startswith("yuv420p"), meta
+    assert tuple(meta["size"]) == (66, 48) and meta["fps"] == pytest.approx(7)
+    decoded = [np.frombuffer(f, np.uint8).reshape(48, 66, 3) for f in reader]
+    assert len(decoded) == 7
+    for got, sent in zip(decoded, frames):  # the right frames in order, up to the lossy coding
+        assert np.abs(got.astype(float) - sent[:48, :66]).mean() < 3
+    boxes = _top_level_boxes(path)
+    assert boxes.index("moov") < boxes.index("mdat"), boxes
+    assert not list(tmp_path.glob(".sweep.mp4.*")), "a temporary file was left"
+
+
+def test_mp4_without_imageio_ffmpeg_falls_back_to_mp4v_and_says_so(tmp_path, monkeypatch):
+    import sys
+
+    import metegs.viewer.export as export
+
+    monkeypatch.setitem(sys.modules, "imageio_ffmpeg", None)  # `import imageio_ffmpeg` raises ImportError
+    monkeypatch.setattr(export, "_warned_mp4v", False)
+    frames = [np.full((24, 32, 3), 40 * i, np.uint8) for i in range(4)]
+    if not export._write_mp4v(tmp_path / "probe.mp4", frames, 4):
+        pytest.skip("this OpenCV build cannot write mp4v")
+    with pytest.warns(export.BrowserVideoWarning, match=r"browsers.*pip install imageio-ffmpeg"):
+        mp4 = write_video(tmp_path / "a.mp4", frames, fps=4)
+    assert mp4 == tmp_path / "a.mp4" and mp4.stat().st_size > 0
+    assert mp4.read_bytes()[4:8] == b"ftyp"
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", export.BrowserVideoWarning)  # said once, not on every export
+        assert write_video(tmp_path / "b.mp4", frames, fps=4).stat().st_size > 0
+
+
 def test_command_line_flags():
     import tyro
 
@@ -181,7 +236,10 @@ def test_live_viewer_sets_a_short_openmp_spin_before_torch_loads(monkeypatch):
     assert "GOMP_SPINCOUNT" not in thread_env(["3dgs", "--viewer"])
     # libgomp reads the variable once, when torch loads: metegs-train's module must not load torch itself
     probe = "import sys, metegs.cli.train; print('torch' in sys.modules)"
-    assert subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True).stdout.strip() == "False"
+    assert (
+        subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True).stdout.strip()
+        == "False"
+    )
 
 
 def test_pose_dataclass_is_hashable():

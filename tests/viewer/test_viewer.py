@@ -1,5 +1,5 @@
 """The viewer on a trained tiny run: live pause / step, exports, and the browser (headless Chromium via Selenium)
-moving the precipitation slider.
+moving the precipitation slider and playing the exported MP4.
 
 Screenshots go to ``$METEGS_TEST_ARTIFACTS`` (else the test's tmp folder); their paths are printed.
 """
@@ -141,11 +141,22 @@ def _why_no_browser() -> str | None:
     return None
 
 
-@pytest.mark.skipif(_why_no_browser() is not None, reason=str(_why_no_browser()))
-def test_browser_precipitation_slider(viewer, tmp_path, record_property):
+def _headless_chrome():
+    """A Selenium driver of headless Chromium (the callers skip through `_why_no_browser` first)."""
     from selenium import webdriver
     from selenium.webdriver.chrome.options import Options
     from selenium.webdriver.chrome.service import Service
+
+    chrome, driver_path = _browser_paths()
+    options = Options()
+    options.binary_location = chrome
+    for arg in ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage", "--window-size=1280,800"):
+        options.add_argument(arg)
+    return webdriver.Chrome(service=Service(driver_path), options=options)
+
+
+@pytest.mark.skipif(_why_no_browser() is not None, reason=str(_why_no_browser()))
+def test_browser_precipitation_slider(viewer, tmp_path, record_property):
     from selenium.webdriver.common.by import By
     from selenium.webdriver.common.keys import Keys
 
@@ -153,12 +164,7 @@ def test_browser_precipitation_slider(viewer, tmp_path, record_property):
 
     viewer.set_weather(WeatherValues(precip_mm_h=2.0, exposure_s=1 / 60))
     folder = _artifacts(tmp_path)
-    chrome, driver_path = _browser_paths()
-    options = Options()
-    options.binary_location = chrome
-    for arg in ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage", "--window-size=1280,800"):
-        options.add_argument(arg)
-    driver = webdriver.Chrome(service=Service(driver_path), options=options)
+    driver = _headless_chrome()
     try:
         count = viewer.stats.count
         driver.get(viewer.url)
@@ -216,3 +222,69 @@ def test_browser_precipitation_slider(viewer, tmp_path, record_property):
         record_property(f"screenshot {name}", str(path))
     print("viewer screenshots: " + ", ".join(f"{k}: {v}" for k, v in paths.items()))
     print(f"render changed by {changed:.1f} grey levels on average after the slider moved")
+
+
+# --- the exported video in the browser ------------------------------------------------------------
+def _video_state(driver, base: str, name: str, timeout: float = 30.0) -> dict:
+    """Load ``base/name`` in a <video> on a page of ``base`` and wait until it has a current frame (readyState >= 2)
+    or an error."""
+    driver.get(f"{base}/")  # same origin as the video (Chromium blocks about:blank -> localhost media)
+    driver.execute_script(
+        "document.body.innerHTML = '';"
+        "const v = document.createElement('video'); v.id = 'v'; v.muted = true; v.preload = 'auto';"
+        "v.src = arguments[0]; document.body.appendChild(v); v.load();",
+        name,
+    )
+    script = (
+        "const v = document.getElementById('v');"
+        "return {ready: v.readyState, duration: v.duration, width: v.videoWidth, height: v.videoHeight,"
+        " error: v.error ? v.error.code : null};"
+    )
+    deadline = time.perf_counter() + timeout
+    while True:
+        state = driver.execute_script(script)
+        if state["ready"] >= 2 or state["error"] is not None or time.perf_counter() > deadline:
+            return state
+        time.sleep(0.1)
+
+
+@pytest.mark.skipif(_why_no_browser() is not None, reason=str(_why_no_browser()))
+def test_browser_plays_the_exported_mp4(tmp_path, monkeypatch):
+    """The sweep MP4 (H.264) plays in Chromium, served from localhost; OpenCV's mp4v, the old format, does not."""
+    import functools
+    import http.server
+    import sys
+    import threading
+    import warnings
+
+    pytest.importorskip("imageio_ffmpeg", reason="H.264 export needs imageio-ffmpeg (pip install 'metegs[video]')")
+    import metegs.viewer.export as export
+
+    rng = np.random.default_rng(0)
+    frames = [rng.integers(0, 256, (49, 67, 3), dtype=np.uint8) for _ in range(8)]
+    assert export.write_video(tmp_path / "sweep.mp4", frames, fps=8).name == "sweep.mp4"
+    with monkeypatch.context() as m, warnings.catch_warnings():
+        warnings.simplefilter("ignore", export.BrowserVideoWarning)
+        m.setitem(sys.modules, "imageio_ffmpeg", None)  # the fallback: OpenCV's mp4v
+        m.setattr(export, "_warned_mp4v", False)  # its once-a-process warning stays for real exports
+        old = export.write_video(tmp_path / "sweep-mp4v.mp4", frames, fps=8)
+
+    class Quiet(http.server.SimpleHTTPRequestHandler):
+        def log_message(self, *args):
+            pass
+
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(Quiet, directory=str(tmp_path)))
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    driver = _headless_chrome()
+    try:
+        base = f"http://127.0.0.1:{server.server_address[1]}"
+        state = _video_state(driver, base, "sweep.mp4")
+        assert state["error"] is None and state["ready"] >= 2, f"Chromium does not play the H.264 MP4: {state}"
+        assert state["duration"] > 0 and (state["width"], state["height"]) == (66, 48), state
+        if old.suffix == ".mp4":  # the control: the test would catch a file Chromium cannot play
+            state = _video_state(driver, base, old.name)
+            assert state["error"] is not None or state["ready"] < 2, f"mp4v played after all: {state}"
+    finally:
+        driver.quit()
+        server.shutdown()
+        server.server_close()
