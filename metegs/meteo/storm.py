@@ -12,6 +12,9 @@ from metegs.meteo.observations import ObservationTable
 STORM_FILE = "beijing_aotizhongxin_2013-08-11.csv"
 """File name of the excerpt inside ``metegs/meteo/data`` (attribution in ``data/README.txt``)."""
 
+PRSA_COLUMNS = ("year", "month", "day", "hour", "RAIN", "wd", "WSPM", "station")
+"""Header columns of the UCI Beijing PRSA files: a csv with all of them is read with ``STORM_READER_OPTIONS``."""
+
 STORM_READER_OPTIONS: dict[str, Any] = {
     "time_columns": ("year", "month", "day", "hour"),
     "timezone": "Asia/Shanghai",

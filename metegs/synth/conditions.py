@@ -6,9 +6,7 @@ Several capture times are spread over the views in order, in equal contiguous bl
 
 from __future__ import annotations
 
-import csv
 import dataclasses
-import io
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,37 +26,25 @@ from metegs.meteo import (
     theta_from_values,
 )
 from metegs.meteo.aggregate import FOG_LIMIT_M, MIST_LIMIT_M
-from metegs.meteo.readers.base import decode_text
+from metegs.meteo.readers import detect_reader
+from metegs.meteo.readers.csv_reader import csv_options
 from metegs.meteo.storm import STORM_READER_OPTIONS
-
-PRSA_COLUMNS = ("year", "month", "day", "hour", "RAIN", "wd", "WSPM", "station")
-"""Header columns of the UCI Beijing PRSA files: a csv with all of them is read with the storm's options."""
-
-
-def is_prsa_csv(path: Path) -> bool:
-    """True for a csv whose header has the UCI Beijing PRSA columns."""
-    if Path(path).suffix.lower() != ".csv" or not Path(path).is_file():
-        return False
-    try:  # the encodings the readers accept (a spreadsheet's UTF-16 "Unicode text" too)
-        text = decode_text(Path(path), Path(path).read_bytes()[:65536], errors="replace")
-    except DataError:
-        return False
-    header = next(csv.reader(io.StringIO(text)), [])
-    return all(c in [h.strip() for h in header] for c in PRSA_COLUMNS)
 
 
 def load_record(path: Path | None, reader: str | None = None, options: dict[str, str] | None = None):
     """(table, reader options used) for ``path`` (None: the shipped storm excerpt).
 
-    The reader is detected from the file unless given; a PRSA csv read without options gets the storm's.
+    The reader is detected from the file unless given; a csv gets the columns detected from its header
+    (`metegs.meteo.readers.csv_reader.csv_options`, the same detection as ``metegs-meteo``; a PRSA file the
+    storm's options), which are returned so that weather.json records them.
     """
     if path is None:
         return default_storm_record(), dict(STORM_READER_OPTIONS)
     path = Path(path)
     options = dict(options or {})
-    if not options and reader in (None, "csv") and is_prsa_csv(path):
-        options = dict(STORM_READER_OPTIONS)
+    if reader in (None, "csv") and path.is_file() and (reader or detect_reader(path)) == "csv":
         reader = "csv"
+        options = csv_options(path, options)
     return read_observations(path, reader, **options), options
 
 

@@ -37,7 +37,11 @@ def test_a_csv_with_its_own_columns(tmp_path, cameras):
 def test_the_csv_without_options_names_what_is_missing(tmp_path, cameras):
     path = tmp_path / "station.csv"
     path.write_text("when,rr_mm_h\n2024-05-01T10:00Z,3.0\n")
-    with pytest.raises(DataError, match="station.csv: line 1: option time_columns='time' names no column"):
+    with pytest.raises(
+        DataError,
+        match=r"station\.csv: cannot tell which columns to read: no time column found.*--set time_columns=.*"
+        r"columns: when, rr_mm_h",
+    ):
         theta_for_cameras(ConditionsConfig(record=path, time="2024-05-01T10:00Z"), cameras, 10.0)
 
 

@@ -1,6 +1,8 @@
-"""Any delimited table of station records, described by options alone (no per-dataset code).
+"""Any delimited table of station records: columns detected from the header, or named by options.
 
-Example, the UCI Beijing PRSA files (hourly ``RAIN`` in mm, local Beijing time)::
+Without column options the reader finds the time, precipitation, visibility, wind, weather and station
+columns itself from a table of common names (`detect_columns`, the same function for every command);
+options that are given always win. Example with every option spelled out, the UCI Beijing PRSA files (hourly ``RAIN`` in mm, local Beijing time)::
 
     read_observations("PRSA_Data_Aotizhongxin_20130301-20170228.csv", reader="csv",
                       time_columns=("year", "month", "day", "hour"), timezone="Asia/Shanghai",
@@ -11,13 +13,15 @@ Example, the UCI Beijing PRSA files (hourly ``RAIN`` in mm, local Beijing time):
 from __future__ import annotations
 
 import csv
+import dataclasses
 import io
 import math
+import re
 from collections.abc import Iterator
 from dataclasses import dataclass
 from datetime import datetime, timedelta, timezone
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 from metegs.errors import ConfigError, DataError
 from metegs.meteo import units
@@ -28,10 +32,12 @@ from metegs.meteo.readers.base import (
     Problems,
     RecordError,
     check_precip,
+    decode_text,
     finite_number,
     read_text,
     resolve_timezone,
 )
+from metegs.meteo.storm import PRSA_COLUMNS, STORM_READER_OPTIONS
 from metegs.meteo.weather_codes import parse_weather_token
 
 
@@ -40,9 +46,11 @@ class CsvOptions(CommonOptions):
     """How to read a table: which columns hold what, in which units and time zone."""
 
     time_columns: tuple[str, ...] = ("time",)
-    """One column with a date-time (ISO 8601 unless ``time_format``), or 3-5 integer columns year, month, day[, hour[, minute]]."""
+    """One column with a date-time, two (a date and a time of day), or 3-5 integer columns year, month, day[, hour[, minute]]; not given: detected."""
     time_format: str | None = None
-    """``strptime`` format of the time column(s) (several columns are joined with one space)."""
+    """``strptime`` format of the time column(s) (several columns are joined with one space); None: ISO 8601, else ``dateutil``."""
+    dayfirst: bool = False
+    """For dates read without ``time_format``: ``01/02/2024`` is 1 February (True) or 2 January (False)."""
     timezone: str = "UTC"
     """Time zone of times without an offset: ``UTC``, ``UTC+8`` or an IANA name such as ``Asia/Shanghai``."""
     precip_column: str | None = None
@@ -71,8 +79,8 @@ class CsvOptions(CommonOptions):
     """Column with METAR-style present-weather groups separated by spaces (``-RA BR``)."""
     station_column: str | None = None
     """Column with a station identifier."""
-    missing: tuple[str, ...] = ("", "NA", "N/A", "999999", "-9999")
-    """Cell values that mean "not reported"."""
+    missing: tuple[str, ...] = ("", "NA", "N/A", "M", "999999", "-9999")
+    """Cell values that mean "not reported" (``M``: IEM's marker). A precipitation of ``T`` (trace) reads as 0."""
     delimiter: str | None = None
     """Field separator; None: sniffed from the header (``,`` ``;`` tab ``|``)."""
 
@@ -87,6 +95,12 @@ class CsvReader(ObservationReader):
     @classmethod
     def can_read(cls, path: Path, head: str) -> bool:
         return path.suffix.lower() in (".csv", ".tsv", ".tab")
+
+    def read(self, path: str | Path, **options: Any):
+        path = Path(path)
+        if path.is_file():  # missing files: the base class says so
+            options, self._detect_notes = _with_detected(path, options)
+        return super().read(path, **options)
 
     def _read(self, path: Path, opts: CsvOptions, problems: Problems):
         try:
@@ -127,9 +141,11 @@ class CsvReader(ObservationReader):
                 "the csv reader needs to know which columns to read: give at least one of precip_column, "
                 f"visibility_column, wind_speed_column, weather_column (columns: {', '.join(header)})",
             )
-        if len(opts.time_columns) not in (1, 3, 4, 5):
+        if len(opts.time_columns) not in (1, 2, 3, 4, 5):
             raise DataError(
-                path, "time_columns must name 1 column (a date-time) or 3-5 (year, month, day[, hour[, minute]])"
+                path,
+                "time_columns must name 1 column (a date-time), 2 (a date and a time of day) "
+                "or 3-5 (year, month, day[, hour[, minute]])",
             )
         missing = set(opts.missing)
         time_idx = [index[c] for c in opts.time_columns]
@@ -142,6 +158,7 @@ class CsvReader(ObservationReader):
 
         parsed: list[tuple[Observation, float | None]] = []
         total = 0
+        dates_only = True  # every time is a date without a time of day: a daily record
         for row in rows:
             line = reader.line_num
             if not row or all(not c.strip() for c in row):
@@ -151,10 +168,14 @@ class CsvReader(ObservationReader):
                 problems.skip(line, None, f"{len(row)} fields, the header has {len(header)}")
                 continue
             try:
-                time_utc = _parse_time([row[i].strip() for i in time_idx], opts, tz)
+                time_fields = [row[i].strip() for i in time_idx]
+                time_utc = _parse_time(time_fields, opts, tz)
+                dates_only = dates_only and _date_only(time_fields, opts)
                 raw_precip = cell(row, opts.precip_column)
                 precip = None
-                if raw_precip is not None:
+                if raw_precip is not None and raw_precip.upper() == "T":  # trace: less than the gauge resolves
+                    precip = 0.0
+                elif raw_precip is not None:
                     precip = check_precip(
                         finite_number(raw_precip, opts.precip_column) * precip_factor, opts.precip_column
                     )
@@ -197,7 +218,10 @@ class CsvReader(ObservationReader):
                 "line": line,
             }
             parsed.append((fields, precip))
-        notes = []
+        notes = list(getattr(self, "_detect_notes", []))
+        if dates_only and parsed and opts.precip_column is not None and opts.precip_period is None:
+            opts = dataclasses.replace(opts, precip_period="24h")
+            notes.append("a daily record (dates without times): precipitation taken as 24-h totals")
         records = self._attach_precip(parsed, opts, path, problems, notes)
         return records, total, notes
 
@@ -263,6 +287,185 @@ class CsvReader(ObservationReader):
         return out
 
 
+# ---- column detection --------------------------------------------------------------------------------------------
+# Header names are compared after `_key`: lower case, every run of other characters than a-z/0-9 as one "_"
+# ("Rain (mm)" -> "rain_mm", "Wind Speed [km/h]" -> "wind_speed_km_h").
+
+TIME_NAMES = (
+    "time", "date", "datetime", "date_time", "timestamp", "valid", "valid_time", "obs_time",
+    "observation_time", "time_utc", "datetime_utc", "date_utc", "utc_time",
+)  # fmt: skip
+"""One column holding a date-time (or a date: a daily record). ``date`` + ``time`` together: a date and a time of day."""
+SPLIT_TIME_NAMES = ("year", "month", "day", "hour", "minute")
+"""Integer columns year, month, day[, hour[, minute]] (as in the UCI Beijing PRSA files)."""
+
+ROLE_NAMES: dict[str, tuple[str | None, tuple[str, ...], dict[str, str]]] = {
+    "precip_column": (
+        "precip_unit",
+        ("precip", "precipitation", "prcp", "rain", "rainfall", "precip_1h", "rain_1h", "precipitation_amount"),
+        {"p01m": "mm", "p01i": "in"},
+    ),
+    "visibility_column": ("visibility_unit", ("vis", "visibility", "visib"), {"vsby": "mi"}),
+    "wind_speed_column": (
+        "wind_speed_unit",
+        ("wspd", "wind_speed", "windspeed", "wind_spd", "ws", "wspm"),
+        {"sknt": "kt", "wind_ms": "m/s", "wind_kt": "kt", "wind_kmh": "km/h", "wind_mph": "mph"},
+    ),
+    "wind_gust_column": (None, ("gust", "wind_gust", "gust_speed", "wgst"), {}),
+    "wind_dir_column": (None, ("drct", "wd", "wind_dir", "wind_direction", "winddir", "wdir"), {}),
+    "weather_column": (None, ("wxcodes", "weather", "present_weather", "wx"), {}),
+    "station_column": (None, ("station", "station_id", "stn", "site", "site_id", "icao"), {}),
+}
+"""Per column option: its unit option, known names (unit not stated: the option's default, mm, m, m/s), and
+names that state their unit (IEM ASOS: ``p01i`` inches, ``vsby`` statute miles, ``sknt`` knots). A known name
+followed by a unit (``precip_in``, ``rain_mm``, ``visibility_km``, ``wind_speed_kt``) takes that unit."""
+
+UNIT_SUFFIXES: dict[str, dict[str, str]] = {
+    "precip_unit": {"mm": "mm", "cm": "cm", "in": "in", "inch": "in", "inches": "in"},
+    "visibility_unit": {"m": "m", "km": "km", "mi": "mi", "miles": "mi", "sm": "mi", "ft": "ft"},
+    "wind_speed_unit": {
+        "ms": "m/s", "m_s": "m/s", "mps": "m/s", "kt": "kt", "kts": "kt", "knots": "kt",
+        "kmh": "km/h", "km_h": "km/h", "kph": "km/h", "mph": "mph",
+    },
+}  # fmt: skip
+"""Unit suffixes a known name may carry, per unit option."""
+
+DATA_COLUMNS = ("precip_column", "visibility_column", "wind_speed_column", "weather_column")
+"""At least one of these must be found or given."""
+
+KNOWN_LAYOUTS: tuple[tuple[tuple[str, ...], dict[str, Any], str], ...] = (
+    (PRSA_COLUMNS, STORM_READER_OPTIONS, "UCI Beijing PRSA layout (local Beijing time, hourly RAIN in mm)"),
+)
+"""Headers recognised as a whole (all their columns present): the options that names alone cannot tell (time zone)."""
+
+
+def _key(name: str) -> str:
+    return re.sub(r"[^0-9a-z]+", "_", name.strip().lower()).strip("_")
+
+
+def _match(role: str, key: str) -> tuple[bool, str | None]:
+    """(the header key fits ``role``, the unit its name states or None)."""
+    unit_option, names, with_unit = ROLE_NAMES[role]
+    if key in with_unit:
+        return True, with_unit[key]
+    if key in names:
+        return True, None
+    for suffix, unit in UNIT_SUFFIXES.get(unit_option, {}).items():
+        if key.endswith("_" + suffix) and key[: -len(suffix) - 1] in names:
+            return True, unit
+    return False, None
+
+
+def detect_columns(
+    header: list[str], given: dict[str, Any], source: str | Path = ""
+) -> tuple[dict[str, Any], list[str]]:
+    """Reader options for the roles ``given`` leaves open, found from the ``header`` names; and notes saying what was found.
+
+    Given options always win (``visibility_column=None`` turns a column off). No time column, no data
+    column, or two candidates for one role: one DataError listing the columns and the ``--set`` option to give.
+    """
+    keys = {_key(h): h for h in reversed(header)}  # first column wins for duplicate keys
+    found: dict[str, Any] = {}
+    notes: list[str] = []
+    problems: list[str] = []
+    for columns, options, what in KNOWN_LAYOUTS:
+        if all(c in header for c in columns):
+            found.update({k: v for k, v in options.items() if k not in given})
+            notes.append(f"recognised the {what}")
+    if "time_columns" not in given and "time_columns" not in found:
+        single = [h for h in header if _key(h) in TIME_NAMES]
+        split = []
+        for k in SPLIT_TIME_NAMES:  # year, month, day, then hour and minute if present in that order
+            if k not in keys:
+                break
+            split.append(keys[k])
+        split = split if len(split) >= 3 else []
+        dated = {_key(h): h for h in single}
+        if len(single) == 2 and set(dated) == {"date", "time"}:
+            found["time_columns"] = (dated["date"], dated["time"])
+        elif len(single) == 1 and not split:
+            found["time_columns"] = (single[0],)
+        elif split and not single:
+            found["time_columns"] = tuple(split)
+        elif not single and not split:
+            problems.append(
+                "no time column found (known names: " + ", ".join(TIME_NAMES) + ", or year,month,day[,hour]): "
+                "give it with --set time_columns=NAME (or time_columns=YEAR,MONTH,DAY,HOUR)"
+            )
+        else:
+            both = single + ([",".join(split)] if split else [])
+            problems.append(
+                f"{len(both)} candidates for the time ({'; '.join(both)}): choose with --set time_columns=NAME"
+            )
+    for role, (unit_option, _, _) in ROLE_NAMES.items():
+        if role in given or role in found:
+            if unit_option and unit_option not in given and unit_option not in found and given.get(role):
+                ok, unit = _match(role, _key(str(given[role])))
+                if ok and unit:  # a named column whose name states its unit
+                    found[unit_option] = unit
+            continue
+        hits = [(h, unit) for h in header for ok, unit in [_match(role, _key(h))] if ok]
+        if len(hits) > 1:
+            problems.append(
+                f"{len(hits)} candidates for {role} ({', '.join(h for h, _ in hits)}): "
+                f"choose with --set {role}=NAME (or {role}=none)"
+            )
+        elif hits:
+            column, unit = hits[0]
+            found[role] = column
+            if unit_option and unit_option not in given:
+                if unit is not None:
+                    found[unit_option] = unit
+                unit_text = found.get(unit_option) or f"{_DEFAULT_UNITS[unit_option]}, assumed"
+                notes.append(f"{role}={column} ({unit_text})")
+            else:
+                notes.append(f"{role}={column}")
+    ambiguous = any(f"candidates for {role}" in p for p in problems for role in DATA_COLUMNS)
+    if not ambiguous and not any({**given, **found}.get(role) for role in DATA_COLUMNS):
+        problems.append(
+            "no precipitation, visibility, wind-speed or weather column found: give one with --set "
+            "precip_column=NAME (or visibility_column, wind_speed_column, weather_column)"
+        )
+    if problems:
+        raise DataError(
+            source,
+            "cannot tell which columns to read: " + "; ".join(problems) + f" (columns: {', '.join(header)}; "
+            "in Python the same options are keyword arguments of read_observations)",
+        )
+    if "time_columns" in found and "time_columns" not in given:
+        notes.insert(0, f"time_columns={','.join(found['time_columns'])}")
+    if notes:
+        notes = ["columns detected from the header: " + "; ".join(notes)]
+    if found and "timezone" not in given and "timezone" not in found:
+        notes.append("times without an offset taken as UTC (set timezone=... otherwise)")
+    return found, notes
+
+
+_DEFAULT_UNITS = {"precip_unit": "mm", "visibility_unit": "m", "wind_speed_unit": "m/s"}
+
+
+def read_header(path: Path, delimiter: str | None = None) -> list[str]:
+    """The header names of the table ``path`` (first line; ``delimiter`` None: sniffed)."""
+    text = decode_text(path, path.read_bytes()[:65536], errors="replace")
+    first = text.split("\n", 1)[0]
+    return [h.strip() for h in next(csv.reader([first], delimiter=delimiter or _sniff_delimiter(first)), [])]
+
+
+def _with_detected(path: Path, options: dict[str, Any]) -> tuple[dict[str, Any], list[str]]:
+    header = read_header(path, options.get("delimiter") or None)
+    found, notes = detect_columns(header, options, path)
+    return {**found, **options}, notes
+
+
+def csv_options(path: str | Path, options: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The csv reader's options for ``path``: ``options`` plus the columns detected from its header (see `detect_columns`).
+
+    Every command reads a csv through this (``read_observations`` calls it); ``metegs-train``/``metegs-synth``
+    record its result in weather.json.
+    """
+    return _with_detected(Path(path), dict(options or {}))[0]
+
+
 def _rows(reader, problems: Problems) -> Iterator[list[str]]:
     """The rows of ``reader``; a line the csv module cannot split (a stray CR or NUL inside it) is bad input."""
     while True:
@@ -288,11 +491,8 @@ def _parse_time(fields: list[str], opts: CsvOptions, tz) -> datetime:
     try:
         if opts.time_format:
             t = datetime.strptime(" ".join(fields), opts.time_format)
-        elif len(fields) == 1:
-            text = fields[0]
-            if text.endswith(("Z", "z")):
-                text = text[:-1] + "+00:00"
-            t = datetime.fromisoformat(text)
+        elif len(fields) <= 2:
+            t = _parse_datetime(" ".join(fields), opts.dayfirst)
         else:
             parts = [int(float(f)) for f in fields]
             day_offset = 0
@@ -304,6 +504,30 @@ def _parse_time(fields: list[str], opts: CsvOptions, tz) -> datetime:
     if t.tzinfo is None:
         t = t.replace(tzinfo=tz)
     return t.astimezone(timezone.utc)
+
+
+def _parse_datetime(text: str, dayfirst: bool) -> datetime:
+    """ISO 8601 (``Z`` allowed), else whatever ``dateutil`` reads (``2012/01/01``, ``01.02.2024 13:00``)."""
+    iso = text[:-1] + "+00:00" if text.endswith(("Z", "z")) else text
+    try:
+        return datetime.fromisoformat(iso)
+    except ValueError:
+        pass
+    from dateutil import parser
+
+    if not any(ch.isdigit() for ch in text):
+        raise ValueError("no digits")
+    # fields the text lacks come from 2000-01-01 00:00, never from today's date
+    return parser.parse(text, dayfirst=dayfirst, default=datetime(2000, 1, 1))
+
+
+def _date_only(fields: list[str], opts: CsvOptions) -> bool:
+    """True if the time fields hold a date without a time of day (a daily record)."""
+    if len(fields) != 1:
+        return len(fields) == 3  # year, month, day
+    if opts.time_format is not None:
+        return not any(c in opts.time_format for c in "HIMSp")
+    return ":" not in fields[0] and sum(c.isdigit() for c in fields[0]) <= 8
 
 
 def _direction(text: str | None, field: str | None) -> float | None:
