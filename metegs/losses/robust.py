@@ -4,7 +4,8 @@ In the spirit of RobustNeRF (Sabour et al., CVPR 2023): what is not multi-view c
 leaves a residual that stays large where the rest of the view is fitted. Per view, a pixel is an outlier when its
 residual (photo − render, mean over channels) exceeds ``k_sigma`` robust standard deviations of that view's
 residuals (1.4826 × the median absolute deviation, so the threshold follows how well the view is fitted: early in
-training, when everything is off, little is left out). Rain and drops add light to a photo, so by default only
+training, when everything is off, little is left out), and by at least ``min_excess`` (a view fitted closely has
+a tiny σ, and its fine texture is not weather). Rain and drops add light to a photo, so by default only
 residuals where the photo is brighter than the model count (``brighter_only``); outliers are grown by
 ``dilate_px`` to take the soft edges of a streak. The weights carry no gradient: they select which pixels the
 photometric loss sees.
@@ -34,6 +35,9 @@ class RobustMaskConfig:
     """A residual above this many robust standard deviations of its view's residuals is an outlier."""
     brighter_only: bool = True
     """Only pixels where the photo is brighter than the model can be outliers (rain and drops add light)."""
+    min_excess: Annotated[float, FRACTION] = 0.04
+    """Nor is a pixel less than this much brighter than the model (a well-fitted view's small residuals: fine
+    texture, not weather)."""
     dilate_px: Annotated[int, NON_NEGATIVE] = 1
     """Outliers are grown by this many pixels (the soft edges of a streak)."""
     start: Annotated[float, FRACTION] = 0.1
@@ -47,7 +51,7 @@ def inlier_weights(residual: torch.Tensor, config: RobustMaskConfig) -> torch.Te
     sigma = MAD_TO_SIGMA * (err - err.median()).abs().median()
     excess = err - err.median()
     outlier = excess if config.brighter_only else excess.abs()
-    mask = (outlier > config.k_sigma * sigma.clamp_min(1e-6)).float()[None, None]
+    mask = (outlier > torch.clamp(config.k_sigma * sigma, min=config.min_excess)).float()[None, None]
     if config.dilate_px > 0:
         k = 2 * config.dilate_px + 1
         mask = F.max_pool2d(mask, k, stride=1, padding=config.dilate_px)
