@@ -57,3 +57,11 @@ def test_weighted_loss_ignores_what_the_weights_leave_out():
     loss(pred, target, weights).backward()
     assert pred.grad[:, :2].abs().max() == 0 and pred.grad[:, 8:].abs().max() > 0
     assert torch.isclose(loss(pred, target, torch.ones(24, 32)), loss(pred, target))
+
+
+def test_a_closely_fitted_view_keeps_its_fine_texture():
+    """With a tiny robust sigma, residuals a few sigmas out but under `min_excess` are texture, not weather."""
+    residual = torch.randn(64, 96, 3, generator=torch.Generator().manual_seed(2)) * 0.001
+    residual[::7, ::5] += 0.02  # small bright misses of fine detail
+    assert inlier_weights(residual, RobustMaskConfig(enabled=True)).min() == 1
+    assert inlier_weights(residual, RobustMaskConfig(enabled=True, min_excess=0.0)).mean() < 0.9
