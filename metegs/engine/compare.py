@@ -58,9 +58,9 @@ def train_blind(trainer, console: Console | None = None) -> dict:
 
 
 INPUTS = {
-    "photos": "the photos",
-    "blind": "the photos + the met record",
-    "clean": "the photos + the met record + clean references of the training views (oracle)",
+    "photos": "photos",
+    "blind": "photos + met record",
+    "clean": "photos + met record + clean refs (oracle)",
 }
 """What each kind of comparison row was trained on (the ``inputs`` column and field)."""
 
