@@ -49,6 +49,11 @@ def resolve_device(name: str) -> torch.device:
     return device
 
 
+def non_finite_params(model: GaussianModel) -> list[str]:
+    """Names of the model's parameters that hold a NaN or an infinity."""
+    return [name for name, p in model.params.items() if not bool(torch.isfinite(p).all())]
+
+
 def seed_everything(seed: int) -> None:
     random.seed(seed)
     np.random.seed(seed)
@@ -112,9 +117,6 @@ class Trainer:
             self.decide("init", "Gaussians given (not initialised by this run)")
         else:
             self.model = self._initial_model()
-        bad = [n for n, t in self.model.params.items() if not bool(torch.isfinite(t).all())]
-        if bad:
-            raise DataError(self.scene.source, f"the initial Gaussians hold non-finite (NaN/Inf) {', '.join(bad)}")
         self.optimizers = make_optimizers(self.model.params, config.optim, self.extent)
         self.densifier = config.densify.setup(
             max_steps=config.max_steps, extent=self.extent, num_train_views=len(self.dataset.train_indices)
@@ -273,7 +275,7 @@ class Trainer:
             colors = np.random.default_rng(self.config.seed).random((len(points), 3), dtype=np.float32)
         else:
             points, colors = self.initial_points
-        return GaussianModel.from_points(
+        model = GaussianModel.from_points(
             points,
             colors,
             sh_degree=mc.sh_degree,
@@ -281,6 +283,10 @@ class Trainer:
             scale_multiplier=mc.init_scale_multiplier,
             device=self.device,
         )
+        bad = non_finite_params(model)  # checkpoints and PLYs are checked where they are read; points are not
+        if bad:
+            raise DataError(self.scene.source, f"the initial Gaussians hold non-finite (NaN/Inf) {', '.join(bad)}")
+        return model
 
     # --- one step ----------------------------------------------------------------------------------
     def background(self, training: bool) -> torch.Tensor:
@@ -387,7 +393,7 @@ class Trainer:
 
     def _interrupted(self, last_good: Path) -> Interrupted:
         """The error of a run stopped by Ctrl-C, after saving where it stood (if finite) to resume from."""
-        if all(bool(torch.isfinite(p).all()) for p in self.model.params.values()):
+        if not non_finite_params(self.model):
             try:
                 last_good = self.save()
             except KeyboardInterrupt:  # a second Ctrl-C while saving: the last scheduled checkpoint stands
@@ -399,7 +405,7 @@ class Trainer:
 
     def _check_finite(self, stats: dict, last_good: Path) -> None:
         """Stop with the cause and a checkpoint to resume from when the loss or a parameter is no longer finite."""
-        bad = [name for name, p in self.model.params.items() if not bool(torch.isfinite(p).all())]
+        bad = non_finite_params(self.model)
         loss = stats.get("loss", 0.0)
         if not bad and np.isfinite(loss):
             return

@@ -48,8 +48,8 @@ class RobustMaskConfig:
 def inlier_weights(residual: torch.Tensor, config: RobustMaskConfig) -> torch.Tensor:
     """[H, W] float weights in {0, 1} of one view from its residual ``residual`` [H, W, 3] (photo − render)."""
     err = residual.mean(dim=-1)
-    sigma = MAD_TO_SIGMA * (err - err.median()).abs().median()
     excess = err - err.median()
+    sigma = MAD_TO_SIGMA * excess.abs().median()
     outlier = excess if config.brighter_only else excess.abs()
     mask = (outlier > torch.clamp(config.k_sigma * sigma, min=config.min_excess)).float()[None, None]
     if config.dilate_px > 0:
