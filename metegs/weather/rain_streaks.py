@@ -90,7 +90,8 @@ class RainStreaks(WeatherModel):
         super().__init__(theta, scene)
         self.config = config
         rain = theta.rain
-        up = scene.up.double() / scene.up.double().norm()
+        up = scene.up.detach().double().cpu()
+        up = up / up.norm()
         c2w = scene.cameras.camera_to_worlds.double().cpu()
         hint = torch.tensor(config.north, dtype=torch.float64) if config.north is not None else c2w[:, :3, 2].mean(0)
         east, north = horizontal_frame(up, hint)

@@ -8,7 +8,7 @@ import torch
 
 from metegs.gaussians.model import GaussianSet
 from metegs.render import gsplat_backend
-from metegs.render.base import RenderSettings
+from metegs.render.base import ALPHA_MIN, T_MIN, RenderSettings
 from metegs.render.gsplat_backend import GsplatRasterizer
 from metegs.render.torch_backend import TorchRasterizer
 from metegs.testing import camera, random_scene
@@ -50,11 +50,13 @@ cuda = pytest.mark.skipif(
 )
 
 
-def _render(rasterizer, g: GaussianSet, cam, settings):
+def _render(rasterizer, g: GaussianSet, cam, settings, keep=None):
+    """Render and back-propagate a fixed loss; ``keep`` [H, W] bool leaves other pixels out of the loss."""
     params = {k: getattr(g, k).detach().clone().cuda().requires_grad_(True) for k in PARAMS}
     out = rasterizer.render(GaussianSet(**params), cam, settings)
     target = torch.rand(out.rgb.shape, generator=torch.Generator().manual_seed(0)).cuda()
-    loss = ((out.rgb - target) ** 2).sum() + 0.1 * out.alpha.sum()
+    w = torch.ones(out.alpha.shape, device="cuda") if keep is None else keep.float()
+    loss = (((out.rgb - target) ** 2).sum(-1) * w).sum() + 0.1 * (out.alpha * w).sum()
     loss.backward()
     return out, {k: p.grad for k, p in params.items()}
 
@@ -65,12 +67,27 @@ def test_matches_torch_reference_on_cuda(n, width, height, sh_degree):
     g = random_scene(n, seed=n, sh_degree=sh_degree)
     cam = camera(width, height, f=0.8 * width)
     settings = RenderSettings(background=(0.2, 0.4, 0.6), sh_degree=sh_degree)
-    ref, ref_grads = _render(TorchRasterizer(chunk=n), g, cam, settings)
-    out, grads = _render(GsplatRasterizer(), g, cam, settings)
-    torch.testing.assert_close(out.rgb, ref.rgb, rtol=0, atol=1e-5)
-    torch.testing.assert_close(out.alpha, ref.alpha, rtol=0, atol=1e-5)
+    # A Gaussian whose alpha sits within float rounding of ALPHA_MIN (or a pixel whose T sits at T_MIN)
+    # is kept by one implementation and skipped by the other: such a pixel may differ by up to
+    # ALPHA_MIN + T_MIN (measured on an H100: 1 pixel in 20k-77k, 2e-4 to 5e-4; nudging the reference's
+    # own thresholds by 1e-5 relative moves as many pixels as far). Those pixels are left out of the loss.
+    with torch.no_grad():
+        first = GsplatRasterizer().render(GaussianSet(**{k: getattr(g, k).cuda() for k in PARAMS}), cam, settings)
+        plain = TorchRasterizer(chunk=n).render(GaussianSet(**{k: getattr(g, k).cuda() for k in PARAMS}), cam, settings)
+    diff = (first.rgb - plain.rgb).abs().amax(-1).maximum((first.alpha - plain.alpha).abs())
+    keep = diff <= 1e-5
+    assert (~keep).float().mean() <= 5e-4, f"{int((~keep).sum())} pixels differ"
+    assert diff.max() <= ALPHA_MIN + T_MIN
+    ref, ref_grads = _render(TorchRasterizer(chunk=n), g, cam, settings, keep)
+    out, grads = _render(GsplatRasterizer(), g, cam, settings, keep)
+    torch.testing.assert_close(out.rgb[keep], ref.rgb[keep], rtol=0, atol=1e-5)
+    torch.testing.assert_close(out.alpha[keep], ref.alpha[keep], rtol=0, atol=1e-5)
     assert torch.equal(out.radii > 0, ref.radii > 0)
+    # Gradients are sums over pixels in another order (gsplat: atomics); on an H100 the means' differed by
+    # up to 3.8e-5 of their largest value (3 of 6000 elements above 1e-5).
     for k in PARAMS:
         scale = ref_grads[k].abs().max().clamp_min(1e-12)
-        torch.testing.assert_close(grads[k] / scale, ref_grads[k] / scale, rtol=1e-4, atol=1e-5, msg=k)
+        torch.testing.assert_close(
+            grads[k] / scale, ref_grads[k] / scale, rtol=1e-3, atol=1e-4, msg=lambda m, k=k: f"{k}: {m}"
+        )
     assert out.means2d.grad is not None and out.means2d.grad.shape == (n, 2)
