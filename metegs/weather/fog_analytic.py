@@ -74,6 +74,11 @@ class FogAnalytic(WeatherModel):
         return torch.exp(self.log_beta)
 
     @property
+    def extinction_per_m(self) -> float:
+        """The largest of the three β (1/m): how strongly the medium veils the scene."""
+        return float(self.beta_rgb.detach().max())
+
+    @property
     def airlight(self) -> torch.Tensor:
         """[3] airlight in (0, 1)."""
         return torch.sigmoid(self.airlight_logit)

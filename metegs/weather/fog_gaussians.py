@@ -398,6 +398,11 @@ class FogGaussians(WeatherModel):
     def active(self) -> bool:
         return self._active
 
+    @property
+    def extinction_per_m(self) -> float:
+        """β of the medium (1/m): how strongly it veils the scene."""
+        return self.beta_per_m
+
     def _build(self) -> GaussianSet:
         c, scene = self.config, self.scene
         centroid = scene.cameras.centers.double().cpu().mean(0)

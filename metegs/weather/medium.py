@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 
+from metegs.cameras import Cameras
 from metegs.meteo.mapping import Theta
 from metegs.weather.airlight import estimate_airlight
 from metegs.weather.base import WeatherScene
+from metegs.weather.conditions import scene_depth_m
 
 
 def fog_extinction_rgb(theta: Theta, include_rain_veil: bool) -> torch.Tensor:
@@ -15,6 +19,36 @@ def fog_extinction_rgb(theta: Theta, include_rain_veil: bool) -> torch.Tensor:
     if include_rain_veil and theta.rain.active:
         beta = beta + theta.fog.beta_rain_per_m
     return beta
+
+
+VISIBLE_CONTRAST_LOSS = 0.05
+"""Contrast loss a person just notices: the threshold of the WMO's meteorological optical range (1 − 0.05 of the
+contrast gone at the visibility). A veil that takes less at the scene's own depths cannot be told in the photos
+from the surfaces' colours."""
+
+
+def veil_fraction(beta_per_m: float, depth_m: float) -> float:
+    """Share of a surface's contrast the medium takes at ``depth_m``: 1 − exp(−β·d)."""
+    return -math.expm1(-max(beta_per_m, 0.0) * max(depth_m, 0.0))
+
+
+def typical_depth_m(
+    cameras: Cameras, points: torch.Tensor | None, metres_per_unit: float, max_points: int = 4096
+) -> float:
+    """Median distance in metres from the cameras to the scene points in front of them (a typical pixel's depth).
+
+    cameras: the views; points: [P, 3] scene points (SfM or surface samples; at most ``max_points`` of them are
+    used, evenly spread) or None, then the cameras' spread (`weather.conditions.scene_depth_m`) stands in."""
+    if points is None or len(points) == 0:
+        return scene_depth_m(cameras, metres_per_unit)
+    pts = torch.as_tensor(points, dtype=torch.float64).cpu()
+    pts = pts[:: max(1, len(pts) // max_points)]
+    w2c = cameras.world_to_cameras().double().cpu()  # [V, 4, 4]
+    z = torch.einsum("vij,pj->vpi", w2c[:, :3, :3], pts) + w2c[:, None, :3, 3]
+    dist = z.norm(dim=-1)[z[..., 2] > 0]
+    if dist.numel() == 0:
+        return scene_depth_m(cameras, metres_per_unit)
+    return float(dist.median()) * metres_per_unit
 
 
 def fog_called_for(theta: Theta, include_rain_veil: bool) -> bool:

@@ -139,7 +139,9 @@ def test_extra_points_compensate_sfm_points_only(tmp_path):
     from_points = tiny_metegs(tmp_path / "a", max_steps=2).setup()
     assert not from_points.random_init and from_points.extra_points is not None
     assert from_points.decisions["extra points"].startswith("on")
-    at_random = tiny_metegs(tmp_path / "b", max_steps=2, model=replace(from_points.config.model, random_init=True)).setup()
+    at_random = tiny_metegs(
+        tmp_path / "b", max_steps=2, model=replace(from_points.config.model, random_init=True)
+    ).setup()
     assert at_random.random_init and at_random.extra_points is None
     assert at_random.decisions["extra points"].startswith("off: the Gaussians started from random points")
 
@@ -162,3 +164,40 @@ def test_weather_options_reach_builtin_and_plugin_models_and_bad_ones_are_named(
     bad = tiny_metegs(tmp_path, weather_options={"fog-analytic": {"no_such_field": 1}})
     with pytest.raises(ConfigError, match="weather_options.fog-analytic"):
         bad.weather_config("fog-analytic")
+
+
+def test_a_medium_too_faint_to_see_at_the_scene_depth_is_left_out(tmp_path):
+    from metegs.weather.medium import VISIBLE_CONTRAST_LOSS, typical_depth_m, veil_fraction
+
+    def trainer_at(visibility_m, metres_per_unit):
+        conditions = ConditionsConfig(precip_mm_h=0.0, visibility_m=visibility_m, metres_per_unit=metres_per_unit)
+        return tiny_metegs(tmp_path / f"{visibility_m}-{metres_per_unit}", conditions=conditions, max_steps=1).setup()
+
+    near = trainer_at(2000.0, 1.0)  # the tiny scene is a few units across: 2 km visibility veils ~1 % at its depth
+    depth = typical_depth_m(near.dataset.cameras, near.scene.points, 1.0)
+    beta = 3.912 / 2000.0 - near.weather_theta(near.scene).fog.beta_background_per_m  # Koschmieder, over clear air
+    assert veil_fraction(beta, depth) < VISIBLE_CONTRAST_LOSS
+    assert near.decisions["weather fog-analytic"].startswith("off: at β")
+    assert not any(m.name == "fog-analytic" for m in near.weather_models)
+    far = trainer_at(2000.0, 100.0)  # the same photos said to span hundreds of metres: the veil shows
+    assert far.decisions["weather fog-analytic"] == "on"
+
+
+def test_typical_depth_is_the_median_distance_of_points_in_front():
+    from metegs.testing import camera
+    from metegs.weather.medium import typical_depth_m, veil_fraction
+
+    cam = camera()  # at the origin, looking down +z (OpenCV)
+    points = torch.tensor([[0.0, 0.0, 2.0], [0.0, 3.0, 4.0], [0.0, 0.0, 9.0], [0.0, 0.0, -5.0]])  # the last is behind
+    assert typical_depth_m(cam, points, 10.0) == pytest.approx(50.0)  # median of 2, 5, 9 units, times 10 m
+    assert veil_fraction(0.01, 50.0) == pytest.approx(1 - torch.exp(torch.tensor(-0.5)).item())
+    assert veil_fraction(0.0, 50.0) == 0.0
+
+
+def test_light_rain_switches_off_the_gtn_and_the_robust_mask(tmp_path):
+    light = tiny_metegs(tmp_path / "light", conditions=ConditionsConfig(precip_mm_h=1.5), max_steps=1).setup()
+    assert light.gtn is None and light.decisions["gtn"].startswith("off: light rain")
+    assert light.robust_from is None and light.decisions["robust mask"].startswith("off: light rain")
+    heavy = tiny_metegs(tmp_path / "heavy", max_steps=1).setup()  # 20 mm/h and 400 m: blur and bright streaks
+    assert heavy.gtn is not None and heavy.decisions["gtn"].startswith("on")
+    assert heavy.robust_from is not None and heavy.decisions["robust mask"].startswith("on")
