@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from metegs.bench.conditions import ResolvedCondition
-from metegs.data.config import DatasetConfig
+from metegs.data.config import DatasetConfig, auto_max_side
 from metegs.errors import DataError
 
 SYNTH_THETA_FIELDS = ("capture_width_px", "exposure_s", "metres_per_unit")
@@ -94,7 +94,7 @@ def training_sizes(cameras, dataset: DatasetConfig) -> list[tuple[int, int]]:
     """(width, height) per view as training loads them (the dataset's downscale rule)."""
     from metegs.data.dataset import auto_downscale
 
-    d = dataset.downscale if dataset.downscale is not None else auto_downscale(cameras, dataset.auto_max_side)
+    d = dataset.downscale if dataset.downscale is not None else auto_downscale(cameras, auto_max_side(dataset))
     return [
         (max(1, round(int(w) / d)), max(1, round(int(h) / d)))
         for w, h in zip(cameras.width.tolist(), cameras.height.tolist())

@@ -80,11 +80,15 @@ VOLATILE_FIELDS = ("load_checkpoint", "progress", "backend", "device", "threads"
 def config_changes(run_dir: Path, config) -> list[str]:
     """Top-level config fields whose value in ``run_dir/config.yml`` differs from ``config`` (empty: same)."""
     from metegs.config import load_yaml
+    from metegs.data.config import auto_max_side
 
     path = Path(run_dir) / "config.yml"
     if not path.is_file():
         return []
     saved = load_yaml(path)
+    if config.dataset.auto_max_side is None:  # the run recorded the size its device chose
+        size = auto_max_side(config.dataset, str(saved.get("device", "cpu")))
+        config = replace(config, dataset=replace(config.dataset, auto_max_side=size))
     now = json.loads(json.dumps(to_dict(config), default=str))
     saved = json.loads(json.dumps(saved, default=str))
     return sorted(k for k, v in now.items() if k not in VOLATILE_FIELDS and k in saved and saved[k] != v)

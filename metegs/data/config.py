@@ -32,8 +32,9 @@ class DatasetConfig:
 
     downscale: float | None = None
     """Image downscale factor; None picks the smallest power of two bringing the longer side to at most `auto-max-side`."""
-    auto_max_side: Annotated[int, Range(8)] = 160
-    """Longest image side (px) targeted when `downscale` is None (keeps CPU training interactive)."""
+    auto_max_side: Annotated[int | None, Range(8)] = None
+    """Longest image side (px) targeted when `downscale` is None; None: 1600 on CUDA (nerfstudio's convention),
+    160 on CPU (keeps CPU training interactive)."""
     test_every: Annotated[int, NON_NEGATIVE] = 8
     """Every n-th view is held out for testing when the format has no explicit split (0: no test views)."""
     undistort: bool = True
@@ -43,3 +44,14 @@ class DatasetConfig:
     take the background colour (object-only reconstruction)."""
     synthetic: SyntheticSceneConfig = field(default_factory=SyntheticSceneConfig)
     """Options of the synthetic scene used when no `--data` is given."""
+
+
+AUTO_MAX_SIDE = {"cuda": 1600, "cpu": 160}
+"""Longest image side by device type when `DatasetConfig.auto_max_side` is None."""
+
+
+def auto_max_side(options: DatasetConfig, device: str = "cpu") -> int:
+    """The longest image side that `options` targets on ``device`` (a torch device string or type)."""
+    if options.auto_max_side is not None:
+        return options.auto_max_side
+    return AUTO_MAX_SIDE.get(str(device).split(":")[0], AUTO_MAX_SIDE["cpu"])

@@ -9,7 +9,7 @@ import numpy as np
 import torch
 
 from metegs.cameras import Cameras
-from metegs.data.config import DatasetConfig
+from metegs.data.config import DatasetConfig, auto_max_side
 from metegs.data.images import load_image, load_mask, resize_image
 from metegs.data.scene import SceneData
 from metegs.errors import ConfigError, DataError
@@ -46,7 +46,7 @@ class Dataset:
         self.names = list(scene.names)
         self.train_indices = list(scene.train_indices)
         self.test_indices = list(scene.test_indices)
-        self.downscale = self._downscale(scene.cameras, options)
+        self.downscale = self._downscale(scene.cameras, options, self.device.type)
         cams = scene.cameras
         self.sizes = [
             (max(1, round(int(w) / self.downscale)), max(1, round(int(h) / self.downscale)))
@@ -65,9 +65,9 @@ class Dataset:
         return len(self.cameras)
 
     @staticmethod
-    def _downscale(cameras: Cameras, options: DatasetConfig) -> int | float:
+    def _downscale(cameras: Cameras, options: DatasetConfig, device: str) -> int | float:
         if options.downscale is None:
-            return auto_downscale(cameras, options.auto_max_side)
+            return auto_downscale(cameras, auto_max_side(options, device))
         if not options.downscale > 0:
             raise ConfigError(f"--dataset.downscale must be positive, got {options.downscale}")
         d = float(options.downscale)
@@ -81,8 +81,8 @@ class Dataset:
         w, h = self._expected(i)
         if array.shape[1] != w or array.shape[0] != h:
             raise DataError(
-                what, f"image is {array.shape[1]}x{array.shape[0]} but its camera (view {i}, "
-                f"{self.names[i]}) is {w}x{h}",
+                what,
+                f"image is {array.shape[1]}x{array.shape[0]} but its camera (view {i}, {self.names[i]}) is {w}x{h}",
             )
 
     def _to_tensor(self, array: np.ndarray) -> torch.Tensor:

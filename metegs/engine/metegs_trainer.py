@@ -25,6 +25,14 @@ LIGHT_OR_NONE = ("none", "light")
 """WMO rain classes whose streaks neither blur the photos nor stand out of them: the GTN and the robust mask stay off
 (measured on the built-in scene under independent light rain: each cost 1.6-2.4 dB against leaving it off)."""
 
+
+def rain_phrase(rain) -> str:
+    """``no rain`` or ``light rain (1.5 mm/h)``: the rain of θ_rain in a decision."""
+    return (
+        "no rain" if rain.intensity_class == "none" else f"{rain.intensity_class} rain ({rain.precip_mm_per_h:g} mm/h)"
+    )
+
+
 PERCEPTUAL_CACHE_MB = 512
 """Largest memory the clean references' perceptual features may take when cached for the whole run."""
 
@@ -65,8 +73,8 @@ class MeteGSTrainer(Trainer):
         elif not wanted:
             self.decide(
                 "robust mask",
-                f"off: {rain.intensity_class} rain ({rain.precip_mm_per_h:g} mm/h) leaves no streak bright enough to "
-                "stand out, so trimming would only drop the scene's hardest pixels",
+                f"off: {rain_phrase(rain)} leaves no streak bright enough to stand out, so trimming would only drop "
+                "the scene's hardest pixels",
             )
         else:
             self.decide(
@@ -135,8 +143,8 @@ class MeteGSTrainer(Trainer):
         ):
             self.decide(
                 "gtn",
-                f"off: {rain.intensity_class} rain and no visible medium: nothing in this weather blurs the photos, "
-                "and per-view growth would only absorb the scene's detail",
+                f"off: {rain_phrase(rain)} and no visible medium: nothing in this weather blurs the photos, and "
+                "per-view growth would only absorb the scene's detail",
             )
             return None
         centre = self.dataset.cameras[self.dataset.train_indices].camera_to_worlds[:, :3, 3].mean(0)

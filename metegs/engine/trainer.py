@@ -16,6 +16,7 @@ import torch
 
 from metegs import __version__
 from metegs.config import absolute_paths, atomic_write_text, save_yaml, write_result
+from metegs.data.config import auto_max_side
 from metegs.data.dataset import Dataset
 from metegs.data.parsers.base import parse_scene
 from metegs.data.scene import SceneData
@@ -77,7 +78,9 @@ class Trainer:
         self._created = time.perf_counter()
         self.device = resolve_device(config.device)
         backend = resolve_backend(config.backend, self.device)
-        self.config = replace(config, backend=backend, device=str(self.device))
+        # the image size chosen for this device is recorded, so evaluation on another device loads the same
+        dataset = replace(config.dataset, auto_max_side=auto_max_side(config.dataset, self.device.type))
+        self.config = config = replace(config, backend=backend, device=str(self.device), dataset=dataset)
         if config.threads > 0:
             torch.set_num_threads(config.threads)
         torch.set_flush_denormal(True)  # tiny transmittances/gradients otherwise slow CPU arithmetic ~30x
@@ -92,6 +95,13 @@ class Trainer:
             scene if scene is not None else self.prepare_scene(parse_scene(config.data, config.parser, config.dataset))
         )
         self.dataset = Dataset(self.scene, config.dataset, device=self.device)
+        if config.dataset.downscale is None:
+            w, h = self.dataset.sizes[0]
+            self.decide(
+                "image size",
+                f"{w}x{h} px: the longer side at most {config.dataset.auto_max_side} px on {self.device.type} "
+                f"(downscale {self.dataset.downscale}; --dataset.auto-max-side or --dataset.downscale choose another)",
+            )
         if len(self.dataset.train_indices) < 2:
             raise ConfigError(
                 f"{self.scene.source or 'the scene'}: {len(self.dataset.train_indices)} training view(s); 3D Gaussian "

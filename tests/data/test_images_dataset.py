@@ -81,10 +81,13 @@ def memory_scene(n=3, width=500, height=500, with_extras=True) -> SceneData:
     cams = Cameras.create(c2w, 400.0, 420.0, width / 2, height / 2, width, height)
     images = [np.full((height, width, 3), i / 10, np.float32) for i in range(n)]
     return SceneData(
-        cameras=cams, names=[f"v{i}" for i in range(n)], images=images,
+        cameras=cams,
+        names=[f"v{i}" for i in range(n)],
+        images=images,
         clean_images=[im + 0.05 for im in images] if with_extras else None,
         depths=[np.full((height, width), 2.0 + i, np.float32) for i in range(n)] if with_extras else None,
-        train_indices=list(range(1, n)), test_indices=[0],
+        train_indices=list(range(1, n)),
+        test_indices=[0],
     )
 
 
@@ -129,8 +132,9 @@ def files_scene(root: Path, n=2) -> SceneData:
         masks.append(root / "masks" / f"{i}.png")
         cv2.imwrite(str(masks[-1]), np.full((32, 48), 255, np.uint8))
     cams = Cameras.create(torch.eye(4).repeat(n, 1, 1), 50.0, 50.0, 24.0, 16.0, 48, 32)
-    return SceneData(cameras=cams, names=[p.name for p in paths], image_paths=paths, mask_paths=masks,
-                     train_indices=list(range(n)))
+    return SceneData(
+        cameras=cams, names=[p.name for p in paths], image_paths=paths, mask_paths=masks, train_indices=list(range(n))
+    )
 
 
 def test_dataset_from_files_with_masks(tmp_path):
@@ -154,3 +158,14 @@ def test_dataset_file_size_mismatch_is_named(tmp_path):
     cv2.imwrite(str(scene.image_paths[0]), np.zeros((10, 10, 3), np.uint8))
     with pytest.raises(DataError, match=r"0.png.*10x10.*48x32"):
         Dataset(scene, DatasetConfig())
+
+
+def test_the_default_image_size_follows_the_device():
+    from metegs.data.config import auto_max_side
+
+    assert auto_max_side(DatasetConfig(), "cuda") == auto_max_side(DatasetConfig(), "cuda:1") == 1600
+    assert auto_max_side(DatasetConfig(), "cpu") == 160
+    assert auto_max_side(DatasetConfig(auto_max_side=640), "cuda") == 640
+    cams = Cameras.create(torch.eye(4)[None], 500.0, 500.0, 1000.0, 658.0, 2000, 1316)
+    assert auto_downscale(cams, auto_max_side(DatasetConfig(), "cuda")) == 2  # 1000x658
+    assert auto_downscale(cams, auto_max_side(DatasetConfig(), "cpu")) == 16  # 125x82

@@ -160,3 +160,18 @@ def test_torch_threads_run_torchs_ops_serially_while_the_cpu_kernels_keep_the_ru
         assert decisions["threads"] == "torch's own ops on 1, the cpu kernels on 2 (torch_threads)"
     finally:
         torch.set_num_threads(previous)
+
+
+def test_the_run_records_the_image_size_its_device_chose(tmp_path):
+    from metegs.bench.suite import config_changes
+
+    ds = DatasetConfig(synthetic=SyntheticSceneConfig(width=64, height=48, num_views=10, num_points=300))
+    config = TrainConfig(
+        max_steps=1, output_dir=tmp_path, experiment_name="run", device="cpu", progress=False, dataset=ds
+    )
+    trainer = config.setup()
+    assert trainer.config.dataset.auto_max_side == 160
+    assert trainer.decisions["image size"].startswith("64x48 px: the longer side at most 160 px on cpu")
+    trainer.train()
+    assert config_changes(trainer.run_dir, config) == []  # None in the suite's config: the device's choice
+    assert config_changes(trainer.run_dir, replace(config, dataset=replace(ds, auto_max_side=320))) == ["dataset"]
