@@ -16,6 +16,7 @@ from metegs.engine.metegs_config import MeteGSConfig
 from metegs.engine.optim import adam
 from metegs.engine.trainer import Trainer
 from metegs.losses.robust import inlier_weights
+from metegs.models.gtn import may_be_visible
 from metegs.render import RenderSettings
 from metegs.weather.base import WeatherModel, WeatherScene
 from metegs.weather.compose import render_with_weather, scene_transmittance
@@ -227,8 +228,9 @@ class MeteGSTrainer(Trainer):
         settings = RenderSettings(background=background, sh_degree=self.model.active_sh_degree)
         camera = self.dataset.cameras[index]
         scene = self.model.activated()
-        if training and self.gtn is not None:
-            scene = self.gtn(scene, camera.camera_to_worlds[0, :3, 3])
+        if training and self.gtn is not None:  # only where the view can see: the rest would stay unseen anyway
+            only = may_be_visible(scene, camera, self.config.gtn.max_factor, settings.near)
+            scene = self.gtn(scene, camera.camera_to_worlds[0, :3, 3], only)
         return render_with_weather(self.rasterizer, scene, self.weather_models, index, camera, settings)
 
     def train_step(self, index: int) -> dict[str, float]:

@@ -22,6 +22,7 @@ from typing import Annotated
 import torch
 from torch import nn
 
+from metegs.cameras import Cameras
 from metegs.errors import ConfigError
 from metegs.gaussians.model import GaussianSet
 from metegs.validate import NON_NEGATIVE, Range
@@ -111,9 +112,23 @@ class GaussianTransformationNetwork(nn.Module):
         dr = 1.0 + span * torch.sigmoid(self.head_rot(h) + bias)
         return ds, dr
 
-    def forward(self, gaussians: GaussianSet, cam_centre: torch.Tensor) -> GaussianSet:
-        """The scene Gaussians as the degraded view sees them (means, opacity and colour unchanged)."""
-        ds, dr = self.factors(gaussians.means, gaussians.scales, gaussians.quats, cam_centre)
+    def forward(
+        self, gaussians: GaussianSet, cam_centre: torch.Tensor, only: torch.Tensor | None = None
+    ) -> GaussianSet:
+        """The scene Gaussians as the degraded view sees them (means, opacity and colour unchanged).
+
+        only: [N] bool, the Gaussians to transform (e.g. `may_be_visible`); the others keep factor 1, which is
+        exact for Gaussians the view cannot see and saves the network's work on them."""
+        g = gaussians
+        if only is None:
+            ds, dr = self.factors(g.means, g.scales, g.quats, cam_centre)
+        else:
+            ds = torch.ones_like(g.scales, dtype=torch.float32)
+            dr = torch.ones_like(g.quats, dtype=torch.float32)
+            if bool(only.any()):
+                sub_ds, sub_dr = self.factors(g.means[only], g.scales[only], g.quats[only], cam_centre)
+                ds = ds.index_put((only,), sub_ds)
+                dr = dr.index_put((only,), sub_dr)
         return GaussianSet(
             gaussians.means,
             gaussians.quats * dr.to(gaussians.quats),
@@ -121,3 +136,23 @@ class GaussianTransformationNetwork(nn.Module):
             gaussians.opacities,
             gaussians.sh,
         )
+
+
+def may_be_visible(gaussians: GaussianSet, camera: Cameras, growth: float = 1.0, near: float = 0.01) -> torch.Tensor:
+    """[N] bool: the Gaussians whose footprint, grown by up to ``growth``, can reach the image of ``camera`` (len 1).
+
+    Conservative: a Gaussian in front of the near plane counts when its centre's projection lies within
+    r = 3.34·growth·σ_max·‖J‖_F + 2 px of the image, ‖J‖_F the Frobenius norm of the projection's Jacobian
+    (bounds the 2D standard deviation; 3.34σ is the rasterisers' widest box, 2 px covers the screen dilation)."""
+    w2c = camera.world_to_cameras()[0].to(gaussians.means)
+    p = gaussians.means.detach() @ w2c[:3, :3].T + w2c[:3, 3]
+    z = p[:, 2]
+    zc = z.clamp_min(near)
+    x, y = p[:, 0] / zc, p[:, 1] / zc
+    f = float(max(camera.fx[0], camera.fy[0]))
+    jac = (f / zc) * torch.sqrt(2.0 + x * x + y * y)
+    radius = 3.34 * growth * gaussians.scales.detach().amax(-1) * jac + 2.0
+    u = float(camera.fx[0]) * x + float(camera.cx[0])
+    v = float(camera.fy[0]) * y + float(camera.cy[0])
+    width, height = int(camera.width[0]), int(camera.height[0])
+    return (z > near) & (u + radius >= 0) & (u - radius <= width) & (v + radius >= 0) & (v - radius <= height)

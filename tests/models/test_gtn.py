@@ -113,3 +113,29 @@ def test_factorised_first_layer_equals_the_plain_91d_mlp():
     b = math.log(0.01 / 0.99)
     assert torch.allclose(ds, 1 + 0.1 * torch.sigmoid(net.head_scale(h) + b), atol=1e-6)
     assert torch.allclose(dr, 1 + 0.1 * torch.sigmoid(net.head_rot(h) + b), atol=1e-6)
+
+
+def test_transforming_only_what_the_view_may_see_renders_the_same():
+    from metegs.models.gtn import may_be_visible
+    from metegs.render.base import RenderSettings
+    from metegs.render.torch_backend import TorchRasterizer
+    from metegs.testing import camera, random_scene
+
+    g = random_scene(300, seed=3)
+    spread = torch.Generator().manual_seed(4)
+    g.means[:150] += (torch.rand(150, 3, generator=spread) - 0.5) * torch.tensor([12.0, 12.0, 8.0])  # many outside
+    g.scales[:5] *= 20.0  # a few wide ones whose centre is outside but whose footprint reaches in
+    cam = camera(48, 36, f=40.0)
+    only = may_be_visible(g, cam, growth=1.1)
+    assert 0 < int(only.sum()) < len(g) * 0.8
+    net = GaussianTransformationNetwork(GTNConfig(init_growth=0.5), torch.zeros(3), 3.0)
+    settings = RenderSettings(background=(0.1, 0.2, 0.3))
+    centre = torch.tensor([0.3, -0.2, -1.0])
+    full = TorchRasterizer().render(net(g, centre), cam, settings)
+    part = TorchRasterizer().render(net(g, centre, only), cam, settings)
+    assert (full.radii > 0)[~only].sum() == 0  # nothing left out reaches the image
+    torch.testing.assert_close(part.rgb, full.rgb, rtol=0, atol=1e-6)
+    torch.testing.assert_close(part.alpha, full.alpha, rtol=0, atol=1e-6)
+    grads = [torch.autograd.grad(r.rgb.sum(), list(net.parameters())) for r in (full, part)]
+    for a, b in zip(*grads):
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-7)
