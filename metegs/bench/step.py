@@ -1,9 +1,12 @@
-"""Training-step benchmark: render, loss, backward and Adam on the synthetic scene, per backend.
+"""Training-step benchmark: each method's own training step on the synthetic scene, per backend.
 
 The model is the scene's point cloud resampled to the requested number of Gaussians (jittered by
 a fraction of the nearest-neighbour spacing, scales from the nearest-neighbour distances as at
 initialisation, full SH degree), so footprints are those of a real early-training model.
-Densification is not run: a step is render + `(1-λ)·L1 + λ·(1-SSIM)` + backward + Adam.
+A step is the trainer's `train_step` held at mid-run on a step where no refinement, opacity reset or
+extra points are due: for `3dgs` render + `(1-λ)·L1 + λ·(1-SSIM)` + backward + Adam (+ the
+densification statistics); for `metegs-full` as `metegs-train metegs-full` runs it on the built-in
+scene (rain and fog synthesised, the weather branch through the GTN, the clean branch).
 """
 
 from __future__ import annotations
@@ -19,14 +22,19 @@ from metegs.bench.memory import PeakMemory, rss_mb
 from metegs.engine.config import TrainConfig
 from metegs.engine.optim import make_optimizers
 from metegs.engine.trainer import Trainer
+from metegs.errors import ConfigError
 from metegs.gaussians.model import GaussianModel
 from metegs.render.cpu_backend import thread_split
+
+METHODS = ("3dgs", "metegs-full")
+"""Methods whose steps the benchmark can time."""
 
 
 @dataclass
 class StepRecord:
-    """One backend at one model size."""
+    """One method and backend at one model size."""
 
+    method: str
     backend: str
     num_gaussians: int
     width: int
@@ -53,38 +61,60 @@ def resampled_model(points: np.ndarray, colors: np.ndarray, n: int, sh_degree: i
     return model
 
 
-def _train_step(trainer: Trainer, index: int) -> None:
-    """Render, loss, backward and Adam (no densification)."""
-    bg = trainer.background(training=True)
-    out = trainer.render(index, background=bg)
-    trainer.loss_fn(out.rgb, trainer.target(index, bg)).backward()
-    for opt in trainer.optimizers.values():
-        opt.step()
-        opt.zero_grad(set_to_none=True)
+def hold_at_mid_run(trainer: Trainer) -> None:
+    """Put ``trainer`` at mid-run on a step where no refinement, opacity reset or extra points are due (its
+    `train_step` does not advance the step, so every timed step is the same kind)."""
+    step = trainer.config.max_steps // 2
+    every = getattr(trainer.densifier, "every", 0) or 0
+    reset = getattr(trainer.densifier, "reset_every", 0) or 0
+    while (every and step % every == 0) or (reset and step % reset == 0):
+        step += 1
+    trainer.step = step
+    if getattr(trainer, "extra_points", None) is not None:
+        trainer.extra_points.done = True
+
+
+def method_config(config: TrainConfig, method: str) -> TrainConfig:
+    """``config``'s device, threads and dataset for ``method`` (`3dgs`: ``config`` itself)."""
+    if method == "3dgs":
+        return config
+    if method == "metegs-full":
+        from metegs.methods import metegs_full
+
+        shared = ("device", "threads", "torch_threads", "dataset", "seed", "backend")
+        return replace(metegs_full(), compare_baseline=False, **{k: getattr(config, k) for k in shared})
+    raise ConfigError(f"--methods: unknown method {method!r}; expected one of {', '.join(METHODS)}")
 
 
 def run_step_benchmark(
-    config: TrainConfig, sizes: list[int], backends: list[str], repeats: int = 10, progress=None
+    config: TrainConfig,
+    sizes: list[int],
+    backends: list[str],
+    repeats: int = 10,
+    progress=None,
+    methods: tuple[str, ...] = ("3dgs",),
 ) -> list[StepRecord]:
-    """Time full training steps of every backend at every model size."""
+    """Time the training steps of every method and backend at every model size."""
     records = []
-    for backend in backends:
-        trainer = Trainer(replace(config, backend=backend, progress=False))
-        with thread_split(trainer.config.backend, config.torch_threads):
-            records += _time_sizes(trainer, sizes, repeats, progress)
+    for method in methods:
+        for backend in backends:
+            trainer = replace(method_config(config, method), backend=backend, progress=False).setup()
+            with thread_split(trainer.config.backend, config.torch_threads):
+                records += _time_sizes(trainer, method, sizes, repeats, progress)
     return records
 
 
-def _time_sizes(trainer: Trainer, sizes: list[int], repeats: int, progress) -> list[StepRecord]:
+def _time_sizes(trainer: Trainer, method: str, sizes: list[int], repeats: int, progress) -> list[StepRecord]:
     """Records of ``trainer``'s steps at each model size."""
     config, scene, views, records = trainer.config, trainer.scene, trainer.dataset.train_indices, []
+    hold_at_mid_run(trainer)
     for n in sizes:
         trainer.model = resampled_model(scene.points, scene.point_colors, n, trainer.model.max_sh_degree, 0)
         trainer.optimizers = make_optimizers(trainer.model.params, config.optim, trainer.extent)
         times = []
         for i in range(repeats + 1):
             t0 = time.perf_counter()
-            _train_step(trainer, views[i % len(views)])
+            trainer.train_step(views[i % len(views)])
             if i > 0:  # the first step warms up
                 times.append(time.perf_counter() - t0)
         # memory in steps of their own: on CPU a thread samples the resident set every 0.5 ms, which would
@@ -92,10 +122,12 @@ def _time_sizes(trainer: Trainer, sizes: list[int], repeats: int, progress) -> l
         before = rss_mb()
         with PeakMemory(trainer.device) as mem:
             for i in range(min(repeats, 3)):
-                _train_step(trainer, views[i % len(views)])
+                trainer.train_step(views[i % len(views)])
         ms = statistics.median(times) * 1e3
         W, H = int(trainer.dataset.cameras.width[0]), int(trainer.dataset.cameras.height[0])
-        records.append(StepRecord(config.backend, n, W, H, ms, 1e3 / ms, before, mem.peak_mb, torch.get_num_threads()))
+        records.append(
+            StepRecord(method, config.backend, n, W, H, ms, 1e3 / ms, before, mem.peak_mb, torch.get_num_threads())
+        )
         if progress is not None:
             progress(records[-1])
     return records

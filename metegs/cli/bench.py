@@ -12,7 +12,7 @@ import json
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal
 
 import torch
 import tyro
@@ -109,6 +109,8 @@ class StepArgs(_BenchArgs):
     """Image height of the synthetic scene (default: its default, 120)."""
     repeats: Annotated[int, Range(1)] = 10
     """Timed steps per configuration (after one warm-up step); the median is reported."""
+    methods: list[Literal["3dgs", "metegs-full"]] = field(default_factory=lambda: ["3dgs", "metegs-full"])
+    """Methods whose training steps are timed (`x 3dgs`: each row's time over the 3dgs row's)."""
 
 
 @dataclass
@@ -286,23 +288,28 @@ def step(args: StepArgs) -> list[dict]:
             args.sizes,
             backends,
             args.repeats,
-            progress=lambda r: status.update(f"done {r.backend} {r.num_gaussians}"),
+            progress=lambda r: status.update(f"done {r.method} {r.backend} {r.num_gaussians}"),
+            methods=tuple(args.methods),
         )
+    plain = {(r.backend, r.num_gaussians): r.step_ms for r in records if r.method == "3dgs"}
 
     def row(r: dict) -> list[str]:
+        key = (r["backend"], r["num_gaussians"])
         return [
+            r["method"],
             r["backend"],
             str(r["num_gaussians"]),
             f"{r['width']}x{r['height']}",
             f"{r['step_ms']:.1f}",
+            f"{r['step_ms'] / plain[key]:.2f}" if key in plain else "-",
             f"{r['iterations_per_s']:.1f}",
             f"{r['rss_before_mb']:.0f}",
             f"{r['step_peak_mb']:.0f}",
         ]
 
     table = _table(
-        "training step (render + loss + backward + Adam), median",
-        ("backend", "N", "image", "ms/step", "it/s", "RSS before MB", "step peak +MB"),
+        "training step of each method (mid-run, no refinement due), median",
+        ("method", "backend", "N", "image", "ms/step", "x 3dgs", "it/s", "RSS before MB", "step peak +MB"),
     )
     return args.report(records, table, row)
 

@@ -66,9 +66,49 @@ def test_raster_table_marks_what_this_run_did_not_measure(capsys, monkeypatch):
 
 
 def test_step_records(tmp_path):
-    rows = step(StepArgs(sizes=[500], width=40, height=30, repeats=1, backends=["torch"], output=tmp_path / "s.json"))
-    assert len(rows) == 1 and rows[0]["iterations_per_s"] > 0 and rows[0]["width"] == 40
+    rows = step(
+        StepArgs(
+            sizes=[500],
+            width=40,
+            height=30,
+            repeats=1,
+            backends=["torch"],
+            methods=["3dgs"],
+            output=tmp_path / "s.json",
+        )
+    )
+    assert len(rows) == 1 and rows[0]["iterations_per_s"] > 0 and rows[0]["width"] == 40 and rows[0]["method"] == "3dgs"
     assert json.loads((tmp_path / "s.json").read_text()) == rows
+
+
+def test_step_times_metegs_full_beside_3dgs(capsys, monkeypatch):
+    """The metegs-full row runs the method's own step (weather branch, GTN, clean branch) on the same resampled
+    model as the 3dgs row, and the table gives their ratio."""
+    monkeypatch.setenv("COLUMNS", "250")
+    rows = step(StepArgs(sizes=[400], width=40, height=30, repeats=2, backends=["torch"]))
+    assert [r["method"] for r in rows] == ["3dgs", "metegs-full"] and all(r["step_ms"] > 0 for r in rows)
+    line = next(x for x in capsys.readouterr().out.splitlines() if "metegs-full" in x and "40x30" in x)
+    ratio = float([c.strip() for c in line.strip("│ ").split("│")][5])
+    assert ratio == pytest.approx(rows[1]["step_ms"] / rows[0]["step_ms"], abs=0.01) and ratio > 1
+
+
+def test_held_at_mid_run_no_refinement_or_extra_points_are_due(tmp_path):
+    from dataclasses import replace
+
+    from metegs.bench.step import hold_at_mid_run, method_config
+    from metegs.data.config import DatasetConfig, SyntheticSceneConfig
+    from metegs.engine.config import TrainConfig
+
+    ds = DatasetConfig(synthetic=SyntheticSceneConfig(width=40, height=30, num_views=10, num_points=300))
+    base = TrainConfig(device="cpu", progress=False, dataset=ds, output_dir=tmp_path)
+    trainer = replace(method_config(base, "metegs-full"), max_steps=1000).setup()
+    hold_at_mid_run(trainer)
+    every = trainer.densifier.every
+    assert trainer.step >= 500 and trainer.step % every != 0 and trainer.extra_points.done
+    n = len(trainer.model)
+    for i in trainer.dataset.train_indices[:3]:
+        trainer.train_step(i)
+    assert len(trainer.model) == n and trainer.step >= 500
 
 
 def test_raster_torch_threads_apply_to_the_cpu_backend_only(tmp_path):
@@ -79,8 +119,9 @@ def test_raster_torch_threads_apply_to_the_cpu_backend_only(tmp_path):
         pytest.skip("the cpu rasteriser extension cannot be built here")
     previous = torch.get_num_threads()
     try:
-        rows = raster(RasterArgs(sizes=[300], images=["48x32"], repeats=1, backends=["torch", "cpu"], threads=2,
-                                 torch_threads=1))
+        rows = raster(
+            RasterArgs(sizes=[300], images=["48x32"], repeats=1, backends=["torch", "cpu"], threads=2, torch_threads=1)
+        )
     finally:
         torch.set_num_threads(previous)
     assert {r["backend"]: r["torch_threads"] for r in rows} == {"torch": 2, "cpu": 1}
