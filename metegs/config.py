@@ -128,6 +128,12 @@ def apply_overrides(config: C, overrides: dict[str, Any], where: str = "") -> C:
     return dataclasses.replace(config, **changes)
 
 
+def user_cache(*parts: str) -> Path:
+    """``$XDG_CACHE_HOME/metegs/<parts>`` (default ``~/.cache/metegs/<parts>``): what metegs keeps between runs."""
+    base = os.environ.get("XDG_CACHE_HOME") or "~/.cache"
+    return Path(base).expanduser().joinpath("metegs", *parts)
+
+
 def _umask() -> int:
     """The process's file-creation mask (read once; Linux reports it in /proc without changing it)."""
     try:

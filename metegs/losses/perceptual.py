@@ -49,7 +49,7 @@ from torch import nn
 from torch.nn import functional as F
 
 import metegs
-from metegs.config import InstantiateConfig
+from metegs.config import InstantiateConfig, user_cache
 from metegs.errors import ConfigError, DataError
 from metegs.eval.lpips import _NETS, _VGG16_CFG, WeightsUnavailable, _backbone_state, vgg16_features
 from metegs.losses.squeezenet import (
@@ -141,8 +141,7 @@ def shared_squeezenet_dir() -> Path:
 
 def user_weights_dir() -> Path:
     """``$XDG_CACHE_HOME/metegs/weights`` (default ``~/.cache/metegs/weights``)."""
-    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    return Path(base).expanduser() / "metegs" / "weights"
+    return user_cache("weights")
 
 
 def _vgg_cache_file() -> Path:

@@ -29,7 +29,7 @@ import torch
 from torch.autograd.function import once_differentiable
 
 from metegs.cameras import Cameras
-from metegs.config import atomic_write_bytes
+from metegs.config import atomic_write_bytes, user_cache
 from metegs.errors import MetegsError
 from metegs.gaussians.model import GaussianSet
 from metegs.render.base import RenderOutput, RenderSettings
@@ -102,9 +102,8 @@ def build_directory(cflags: list[str] | None = None) -> Path:
     override = os.environ.get("METEGS_EXTENSIONS_DIR")
     if override:
         return Path(override).expanduser()
-    cache = Path(os.environ.get("XDG_CACHE_HOME") or "~/.cache").expanduser()
     digest = source_digest(compile_flags()[0] if cflags is None else cflags)
-    return cache / "metegs" / "torch_extensions" / _TORCH_TAG / f"{_cpu_tag()}-{digest}"
+    return user_cache("torch_extensions", _TORCH_TAG, f"{_cpu_tag()}-{digest}")
 
 
 def stage_sources(build_dir: Path) -> tuple[Path, bool]:

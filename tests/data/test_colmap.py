@@ -14,7 +14,8 @@ import metegs.builtins  # noqa: F401  (registers the parsers)
 from metegs.data.config import DatasetConfig
 from metegs.data.images import load_image
 from metegs.data.parsers.base import parse_scene
-from metegs.data.parsers.colmap import CACHE_DIR, ColmapParser
+from metegs.data.parsers.colmap import ColmapParser
+from metegs.data.undistort import CACHE_DIR
 from metegs.errors import DataError
 
 W, H = 160, 120

@@ -34,8 +34,10 @@ def write_scene(root: Path, n: int = 4, shared: bool = True, missing=(), **extra
     (root / "images").mkdir(parents=True, exist_ok=True)
     frames = []
     for i in range(n):
-        frame = {"file_path": f"images/frame_{i:03d}.png",
-                 "transform_matrix": gl_look_at([3 * np.cos(i), 3 * np.sin(i), 1.0])}
+        frame = {
+            "file_path": f"images/frame_{i:03d}.png",
+            "transform_matrix": gl_look_at([3 * np.cos(i), 3 * np.sin(i), 1.0]),
+        }
         if not shared:
             frame.update(fl_x=30.0 + i, fl_y=31.0 + i, cx=16.0, cy=12.0, w=32, h=24)
         if i not in missing:
@@ -99,8 +101,12 @@ def test_missing_frames_skipped_with_one_warning(tmp_path):
 
 
 def test_explicit_split_lists(tmp_path):
-    write_scene(tmp_path, n=4, train_filenames=["images/frame_000.png", "./images/frame_002.png"],
-                test_filenames=["images/frame_001.png"])
+    write_scene(
+        tmp_path,
+        n=4,
+        train_filenames=["images/frame_000.png", "./images/frame_002.png"],
+        test_filenames=["images/frame_001.png"],
+    )
     scene = NerfstudioParser().parse(tmp_path, DatasetConfig())
     assert scene.train_indices == [0, 2] and scene.test_indices == [1]
 
@@ -129,15 +135,116 @@ def test_missing_intrinsic_and_frames(tmp_path):
         NerfstudioParser().parse(tmp_path, DatasetConfig())
 
 
-def test_distortion_is_refused(tmp_path):
+def test_what_cannot_be_undistorted_is_refused(tmp_path):
     write_scene(tmp_path, n=2, k1=0.1)
-    with pytest.raises(DataError, match="distortion is unsupported"):
-        NerfstudioParser().parse(tmp_path, DatasetConfig())
+    with pytest.raises(DataError, match="distorted; rerun with --dataset.undistort"):
+        NerfstudioParser().parse(tmp_path, DatasetConfig(undistort=False))
     write_scene(tmp_path, n=2, k1=0.0, p2=0.0)
-    assert len(NerfstudioParser().parse(tmp_path, DatasetConfig())) == 2
-    write_scene(tmp_path, n=2, camera_model="OPENCV_FISHEYE")
-    with pytest.raises(DataError, match="OPENCV_FISHEYE"):
+    assert len(NerfstudioParser().parse(tmp_path, DatasetConfig(undistort=False))) == 2  # zeros: nothing to do
+    write_scene(tmp_path, n=2, k4=0.01)
+    with pytest.raises(DataError, match="k4 is only supported with camera_model OPENCV_FISHEYE"):
         NerfstudioParser().parse(tmp_path, DatasetConfig())
+    write_scene(tmp_path, n=2, camera_model="EQUIRECTANGULAR")
+    with pytest.raises(DataError, match="frame 0|top level|EQUIRECTANGULAR"):
+        NerfstudioParser().parse(tmp_path, DatasetConfig())
+
+
+W, H = 160, 120
+OFF_CENTRE = np.array([0.55, 0.4, 1.0]) * 2.0  # a point in OpenCV camera axes imaged near a corner
+
+
+def _write_distorted_scene(root: Path, fisheye: bool, per_frame: bool) -> tuple[list[np.ndarray], float]:
+    """Two views of a blob each, drawn where the distorted camera images OFF_CENTRE; with clean references."""
+    fx, fy, cx, cy = 100.0, 102.0, 79.0, 61.0
+    coeffs = (
+        {"k1": 0.08, "k2": -0.02, "k3": 0.01, "k4": -0.004}
+        if fisheye
+        else {"k1": -0.25, "k2": 0.05, "p1": 0.002, "p2": -0.001, "k3": 0.01}
+    )
+    K = np.array([[fx, 0, cx - 0.5], [0, fy, cy - 0.5], [0, 0, 1]])
+    for folder in ("images", "images_clean"):
+        (root / folder).mkdir(parents=True, exist_ok=True)
+    frames, targets = [], []
+    for i in range(2):
+        gl = np.array(gl_look_at([3 * np.cos(i), 3 * np.sin(i), 1.0]))
+        right, up, back, centre = gl[:3, 0], gl[:3, 1], gl[:3, 2], gl[:3, 3]
+        targets.append(centre + OFF_CENTRE[0] * right - OFF_CENTRE[1] * up - OFF_CENTRE[2] * back)
+        pc = OFF_CENTRE.reshape(1, 1, 3)
+        if fisheye:
+            uv, _ = cv2.fisheye.projectPoints(pc, np.zeros(3), np.zeros(3), K, np.array(list(coeffs.values())))
+        else:
+            d = np.array([coeffs["k1"], coeffs["k2"], coeffs["p1"], coeffs["p2"], coeffs["k3"]])
+            uv, _ = cv2.projectPoints(pc, np.zeros(3), np.zeros(3), K, d)
+        u, v = uv.reshape(2) + 0.5
+        ys, xs = np.mgrid[:H, :W] + 0.5
+        blob = np.exp(-((xs - u) ** 2 + (ys - v) ** 2) / (2 * 2.0**2))
+        img = (np.repeat(blob[:, :, None], 3, axis=2) * 255).round().astype(np.uint8)
+        cv2.imwrite(str(root / "images" / f"f{i}.png"), img)
+        cv2.imwrite(str(root / "images_clean" / f"f{i}.png"), img)
+        frame = {"file_path": f"images/f{i}.png", "transform_matrix": gl.tolist()}
+        if per_frame:
+            frame.update(coeffs)
+        frames.append(frame)
+    meta = {"frames": frames, "fl_x": fx, "fl_y": fy, "cx": cx, "cy": cy, "w": W, "h": H}
+    if fisheye:
+        meta["camera_model"] = "OPENCV_FISHEYE"
+    if not per_frame:
+        meta.update(coeffs)
+    (root / "transforms.json").write_text(json.dumps(meta))
+    naive = np.array([fx * OFF_CENTRE[0] / OFF_CENTRE[2] + cx, fy * OFF_CENTRE[1] / OFF_CENTRE[2] + cy])
+    return targets, float(np.linalg.norm(naive - np.array([u, v])))
+
+
+def _centroid(grey: np.ndarray) -> np.ndarray:
+    w = np.clip(grey - 0.05, 0.0, None)
+    ys, xs = np.mgrid[: grey.shape[0], : grey.shape[1]] + 0.5
+    return np.array([(w * xs).sum(), (w * ys).sum()]) / w.sum()
+
+
+@pytest.mark.parametrize(
+    ("fisheye", "per_frame"),
+    [(False, False), (False, True), (True, False)],
+    ids=["opencv", "opencv-per-frame", "fisheye"],
+)
+def test_distorted_views_are_undistorted_once_to_the_pinhole_they_report(tmp_path, fisheye, per_frame):
+    from metegs.data.images import load_image
+    from metegs.data.undistort import CACHE_DIR
+
+    targets, shift = _write_distorted_scene(tmp_path, fisheye, per_frame)
+    assert shift > 5.0  # where the blob is drawn, the lens moves it this far from the original pinhole's projection
+    scene = NerfstudioParser().parse(tmp_path, DatasetConfig())
+    cams = scene.cameras
+    for i, target in enumerate(targets):
+        assert CACHE_DIR in scene.image_paths[i].parts and CACHE_DIR in scene.clean_image_paths[i].parts
+        w2c = cams.world_to_cameras()[i].double().numpy()
+        p = w2c[:3, :3] @ target + w2c[:3, 3]
+        expected = np.array(
+            [float(cams.fx[i]) * p[0] / p[2] + float(cams.cx[i]), float(cams.fy[i]) * p[1] / p[2] + float(cams.cy[i])]
+        )
+        for path in (scene.image_paths[i], scene.clean_image_paths[i]):
+            image = load_image(path)
+            assert image.shape == (H, W, 3)
+            np.testing.assert_allclose(_centroid(image[:, :, 0]), expected, atol=0.35)
+    stamps = [q.stat().st_mtime_ns for q in scene.image_paths]
+    again = NerfstudioParser().parse(tmp_path, DatasetConfig())
+    assert again.image_paths == scene.image_paths and [q.stat().st_mtime_ns for q in again.image_paths] == stamps
+
+
+def test_a_read_only_scene_caches_its_undistorted_views_in_the_user_cache(tmp_path, monkeypatch):
+    import os
+
+    if os.geteuid() == 0:
+        monkeypatch.setattr(os, "access", lambda path, mode: not str(path).startswith(str(tmp_path / "scene")))
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    root = tmp_path / "scene"
+    _write_distorted_scene(root, fisheye=False, per_frame=False)
+    root.chmod(0o555)
+    try:
+        scene = NerfstudioParser().parse(root, DatasetConfig())
+    finally:
+        root.chmod(0o755)
+    assert all(str(q).startswith(str(tmp_path / "cache" / "metegs" / "undistorted")) for q in scene.image_paths)
+    assert not (root / ".metegs_undistorted").exists()
 
 
 XYZ = np.array([[0.0, 1.0, 2.0], [-1.5, 0.25, 3.0], [4.0, -2.0, 0.5]], dtype=np.float32)
@@ -148,8 +255,16 @@ def write_ply(path: Path, fmt: str, colors: bool = True) -> None:
     props = ["property float x", "property float y", "property float z"]
     if colors:
         props += ["property uchar red", "property uchar green", "property uchar blue"]
-    header = ["ply", f"format {fmt} 1.0", "comment test", f"element vertex {len(XYZ)}", *props,
-              "element face 0", "property list uchar int vertex_indices", "end_header"]
+    header = [
+        "ply",
+        f"format {fmt} 1.0",
+        "comment test",
+        f"element vertex {len(XYZ)}",
+        *props,
+        "element face 0",
+        "property list uchar int vertex_indices",
+        "end_header",
+    ]
     body = b""
     if fmt == "ascii":
         rows = [" ".join([*map(str, p), *(map(str, c) if colors else [])]) for p, c in zip(XYZ, RGB, strict=True)]

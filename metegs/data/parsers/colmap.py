@@ -8,35 +8,29 @@ named with its record and field, and never makes pycolmap allocate more than the
 
 Camera models: PINHOLE and SIMPLE_PINHOLE are used directly. SIMPLE_RADIAL, RADIAL, OPENCV and
 FULL_OPENCV are undistorted when ``--dataset.undistort`` is on (the default): each image is remapped
-once with OpenCV to a pinhole camera (``cv2.getOptimalNewCameraMatrix`` with alpha=0, same size, so
-there are no black borders) and cached as PNG in ``<scene>/.metegs_undistorted/``; the scene then
-points at the cached files. Fisheye and other models are refused with a DataError naming the model.
+once with OpenCV to a pinhole camera of the same size without black borders and cached
+(`metegs.data.undistort`: in ``<scene>/.metegs_undistorted/``, or the user's cache when the scene is read-only);
+the scene then points at the cached files. Fisheye and other models are refused with a DataError naming the model.
 Clean references (as `metegs-synth` writes them) come from ``<scene>/images_clean/`` for views that were
 not undistorted.
 """
 
 from __future__ import annotations
 
-import hashlib
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import ClassVar
 
-import cv2
 import numpy as np
 
 from metegs.cameras import Cameras, to_homogeneous
-from metegs.config import atomic_output
 from metegs.data.config import DatasetConfig
-from metegs.data.images import load_image
 from metegs.data.parsers.clean import find_clean_paths
 from metegs.data.parsers.colmap_files import check_model, model_file
 from metegs.data.scene import SceneData, split_every_nth
+from metegs.data.undistort import Distortion, cache_folder, undistorted_copy
 from metegs.errors import DataError
-
-CACHE_DIR = ".metegs_undistorted"
-"""Folder (inside the scene) holding undistorted copies of images with distorted camera models."""
 
 _PINHOLE = ("SIMPLE_PINHOLE", "PINHOLE")
 _DISTORTED = ("SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV")
@@ -116,58 +110,14 @@ def _cam_from_world(im) -> np.ndarray:
     return np.asarray(pose.matrix(), dtype=np.float64)
 
 
-def _opencv_distortion(model: str, params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """COLMAP params of a distorted model -> (K [3, 3] in COLMAP pixels, OpenCV distortion coefficients)."""
+def _distortion(model: str, params: np.ndarray) -> Distortion:
+    """The distorted camera of COLMAP ``model`` and ``params`` (COLMAP pixel convention)."""
     if model in ("SIMPLE_RADIAL", "RADIAL"):
         f, cx, cy = params[:3]
-        k = list(params[3:]) + [0.0] * (5 - len(params))
-        fx = fy = f
-        dist = [k[0], k[1], 0.0, 0.0]
-    else:  # OPENCV: fx fy cx cy k1 k2 p1 p2; FULL_OPENCV adds k3 k4 k5 k6 (OpenCV rational model)
-        fx, fy, cx, cy = params[:4]
-        dist = list(params[4:])
-    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], dtype=np.float64)
-    return K, np.asarray(dist, dtype=np.float64)
-
-
-def undistorted_intrinsics(model: str, params: np.ndarray, width: int, height: int) -> tuple[_Pinhole, tuple]:
-    """Pinhole intrinsics after undistortion plus the OpenCV (K, dist, newK) used to remap (OpenCV pixels)."""
-    K, dist = _opencv_distortion(model, np.asarray(params, dtype=np.float64))
-    K_cv = K.copy()
-    K_cv[0, 2] -= 0.5  # COLMAP pixel centres are at +0.5, OpenCV's at integers
-    K_cv[1, 2] -= 0.5
-    new_K, _ = cv2.getOptimalNewCameraMatrix(K_cv, dist, (width, height), 0, (width, height))
-    pin = _Pinhole(new_K[0, 0], new_K[1, 1], new_K[0, 2] + 0.5, new_K[1, 2] + 0.5, width, height)
-    return pin, (K_cv, dist, new_K)
-
-
-def _cache_key(src: Path, model: str, params: np.ndarray) -> str:
-    stat = src.stat()
-    text = f"{model}|{np.asarray(params).tolist()}|{stat.st_mtime_ns}|{stat.st_size}"
-    return hashlib.sha1(text.encode()).hexdigest()[:10]
-
-
-def _write_atomic(dst: Path, rgb: np.ndarray) -> None:
-    """Write float RGB [H, W, 3] as 16-bit PNG, atomically."""
-    bgr16 = np.round(np.clip(rgb[:, :, ::-1], 0.0, 1.0) * 65535.0).astype(np.uint16)
-    with atomic_output(dst, ".png") as tmp:
-        if not cv2.imwrite(str(tmp), bgr16):
-            raise DataError(dst, "cannot write the undistorted image")
-
-
-def undistort_to_cache(src: Path, cache: Path, name: str, model: str, params: np.ndarray, remap: tuple) -> Path:
-    """Undistorted copy of ``src`` in ``cache`` (made once; reused while the source and camera are unchanged)."""
-    dst = cache / f"{name}.{_cache_key(src, model, params)}.png"
-    if dst.is_file():
-        return dst
-    K_cv, dist, new_K = remap
-    img = load_image(src)
-    out = cv2.undistort(img, K_cv, dist, None, new_K)
-    try:
-        _write_atomic(dst, out)
-    except OSError as exc:
-        raise DataError(cache, f"cannot write undistorted images: {exc}") from exc
-    return dst
+        k = [*params[3:], 0.0, 0.0]
+        return Distortion(f, f, cx, cy, (k[0], k[1], 0.0, 0.0))
+    # OPENCV: fx fy cx cy k1 k2 p1 p2; FULL_OPENCV adds k3 k4 k5 k6 (OpenCV rational model)
+    return Distortion(*(float(v) for v in params[:4]), tuple(float(v) for v in params[4:]))
 
 
 class ColmapParser:
@@ -280,8 +230,8 @@ class ColmapParser:
                 f"camera {cam.camera_id}: camera model {model} is distorted; rerun with --dataset.undistort "
                 "or undistort with COLMAP image_undistorter",
             )
-        pin, remap = undistorted_intrinsics(model, params, w, h)
-        return pin, undistort_to_cache(src, scene / CACHE_DIR, im.name, model, params, remap)
+        camera = _distortion(model, params)
+        return _Pinhole(*camera.pinhole(w, h), w, h), undistorted_copy(src, cache_folder(scene), im.name, camera)
 
     @staticmethod
     def _points(rec, folder: Path) -> tuple[np.ndarray | None, np.ndarray | None]:

@@ -10,9 +10,12 @@ when there is no test list) when present, else every n-th view is held out. ``pl
 per-frame ``depth_file_path`` naming a ``.npy`` file (float32 [H, W] z-depth in scene units, as
 `metegs-synth` writes them) gives the scene's depth maps when every frame has one.
 
-Lens distortion is unsupported for transforms.json: non-zero ``k1..k4, p1, p2`` (or
-``distortion_params``) and non-perspective ``camera_model`` values raise a DataError; undistort the
-images first (e.g. with COLMAP and the COLMAP parser).
+Lens distortion (``k1, k2, k3, k4, p1, p2`` or nerfstudio's ``distortion_params`` [k1, k2, k3, k4, p1, p2],
+per frame or at the top level, as ``ns-process-data`` and instant-ngp write them) is undistorted once and
+cached when ``--dataset.undistort`` is on (the default), as for COLMAP (`metegs.data.undistort`):
+``OPENCV`` (and the other pinhole models) with k1, k2, k3, p1, p2, and ``OPENCV_FISHEYE`` with k1..k4; clean
+references are undistorted with their view. A radial k4 outside the fisheye model, distortion beside
+depth maps, and other camera models (equirectangular, ...) raise a DataError naming the frame.
 """
 
 from __future__ import annotations
@@ -30,12 +33,14 @@ from metegs.cameras import Cameras, opengl_to_opencv
 from metegs.data.config import DatasetConfig
 from metegs.data.parsers.clean import find_clean_paths
 from metegs.data.scene import SceneData, split_every_nth
+from metegs.data.undistort import Distortion, cache_folder, undistorted_copy
 from metegs.errors import DataError
 from metegs.gaussians.ply import check_finite, read_ply_vertices
 
 _INTRINSICS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
 _DISTORTION = ("k1", "k2", "k3", "k4", "p1", "p2")
 _PERSPECTIVE = ("PINHOLE", "SIMPLE_PINHOLE", "OPENCV", "SIMPLE_RADIAL", "RADIAL")
+_FISHEYE = "OPENCV_FISHEYE"
 
 
 def read_json(path: Path) -> dict:
@@ -125,7 +130,6 @@ class NerfstudioParser:
         frames = meta.get("frames")
         if not isinstance(frames, list) or not frames:
             raise DataError(source, "missing or empty 'frames' list")
-        _check_model(meta, source, "the top level")
         views = [self._frame(meta, fr, i, source) for i, fr in enumerate(frames)]
         extra = _metegs_block(meta, len(frames), source)
         for v, exposure in zip(views, extra["exposure"]):
@@ -137,6 +141,9 @@ class NerfstudioParser:
             raise DataError(source, f"no images found: none of the {len(views)} frame image files exist")
         if missing:
             warn_missing(source, missing)
+        clean = find_clean_paths(source.parent, [v["path"] for v in present])
+        if any(v["distortion"].distorted for v in present):
+            clean = _undistort(present, clean, source, options)
         cams = Cameras.create(
             gl_to_cv(np.stack([v["c2w"] for v in present])),
             *([v[k] for v in present] for k in _INTRINSICS),
@@ -150,7 +157,7 @@ class NerfstudioParser:
             cameras=cams,
             names=names,
             image_paths=paths,
-            clean_image_paths=find_clean_paths(source.parent, paths),
+            clean_image_paths=clean,
             depths=_npy_depths(present, source),
             train_indices=train,
             test_indices=test,
@@ -170,7 +177,6 @@ class NerfstudioParser:
             raise DataError(source, f"{where} has no 'file_path'")
         if "transform_matrix" not in frame:
             raise DataError(source, f"{where} has no 'transform_matrix'")
-        _check_model(frame, source, where)
         view = {"name": os.path.normpath(str(frame["file_path"])), "path": source.parent / str(frame["file_path"])}
         depth = frame.get("depth_file_path")
         view["depth"] = source.parent / str(depth) if isinstance(depth, str) and depth.endswith(".npy") else None
@@ -180,6 +186,7 @@ class NerfstudioParser:
             if value is None:
                 raise DataError(source, f"{where} has no intrinsic '{key}' (neither per frame nor at the top level)")
             view[key] = number(value, source, f"{where}: intrinsic '{key}'")
+        view["distortion"] = _distortion(meta, frame, view, source, where)
         return view
 
     @staticmethod
@@ -203,22 +210,46 @@ def _npy_depths(views: list[dict], source: Path) -> list[np.ndarray] | None:
     return depths
 
 
-def _check_model(obj: dict, source: Path, where: str) -> None:
-    """DataError if ``obj`` declares a non-perspective camera model or non-zero lens distortion."""
-    model = obj.get("camera_model")
-    if model is not None and model not in _PERSPECTIVE:
-        raise DataError(source, f"{where}: camera_model {model} is unsupported (only pinhole cameras are)")
-    params = obj.get("distortion_params") or []
-    if not isinstance(params, list):
-        raise DataError(source, f"{where}: 'distortion_params' must be a list, got {params!r}")
-    dist = [number(obj.get(k) or 0.0, source, f"{where}: '{k}'") for k in _DISTORTION]
-    dist += [number(d, source, f"{where}: 'distortion_params'") for d in params]
-    if any(d != 0.0 for d in dist):
-        raise DataError(
-            source,
-            f"{where}: lens distortion is unsupported for transforms.json (non-zero k1..k4/p1/p2); "
-            "undistort the images first",
-        )
+def _distortion(meta: dict, frame: dict, view: dict, source: Path, where: str) -> Distortion:
+    """The frame's camera (its own keys over the top level's); DataError for what cannot be undistorted."""
+    model = frame.get("camera_model", meta.get("camera_model"))
+    if model is not None and model not in (*_PERSPECTIVE, _FISHEYE):
+        raise DataError(source, f"{where}: camera_model {model} is unsupported (pinhole and {_FISHEYE} are)")
+    coeffs = {}
+    for obj, what in ((meta, "the top level"), (frame, where)):
+        params = obj.get("distortion_params")
+        if params is not None:
+            if not isinstance(params, list) or len(params) > 6:
+                raise DataError(source, f"{what}: 'distortion_params' must be a list [k1, k2, k3, k4, p1, p2]")
+            coeffs.update(zip(_DISTORTION, (number(d, source, f"{what}: 'distortion_params'") for d in params)))
+        coeffs.update({k: number(obj[k], source, f"{what}: '{k}'") for k in _DISTORTION if obj.get(k) is not None})
+    k = {name: coeffs.get(name, 0.0) for name in _DISTORTION}
+    pinhole = (view["fl_x"], view["fl_y"], view["cx"], view["cy"])
+    if model == _FISHEYE:
+        return Distortion(*pinhole, (k["k1"], k["k2"], k["k3"], k["k4"]), fisheye=True)
+    if k["k4"] != 0.0:
+        raise DataError(source, f"{where}: a radial k4 is only supported with camera_model {_FISHEYE}")
+    return Distortion(*pinhole, (k["k1"], k["k2"], k["p1"], k["p2"], k["k3"]))
+
+
+def _undistort(views: list[dict], clean: list[Path] | None, source: Path, options: DatasetConfig) -> list[Path] | None:
+    """Point distorted views (and their clean references) at undistorted copies with pinhole intrinsics."""
+    first = next(v for v in views if v["distortion"].distorted)
+    if not options.undistort:
+        raise DataError(source, f"{first['name']}: the camera is distorted; rerun with --dataset.undistort")
+    if any(v["depth"] is not None for v in views):
+        raise DataError(source, f"{first['name']}: depth maps beside lens distortion are unsupported")
+    cache = cache_folder(source.parent)
+    clean = list(clean) if clean is not None else None
+    for i, v in enumerate(views):
+        camera = v["distortion"]
+        if not camera.distorted:
+            continue
+        v["fl_x"], v["fl_y"], v["cx"], v["cy"] = camera.pinhole(int(v["w"]), int(v["h"]))
+        v["path"] = undistorted_copy(v["path"], cache, v["name"], camera)
+        if clean is not None:
+            clean[i] = undistorted_copy(clean[i], cache, os.path.join("clean", v["name"]), camera)
+    return clean
 
 
 def _split(meta: dict, names: list[str], source: Path, every: int) -> tuple[list[int], list[int]]:
