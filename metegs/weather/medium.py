@@ -22,9 +22,9 @@ def fog_extinction_rgb(theta: Theta, include_rain_veil: bool) -> torch.Tensor:
 
 
 VISIBLE_CONTRAST_LOSS = 0.05
-"""Contrast loss a person just notices: the threshold of the WMO's meteorological optical range (1 − 0.05 of the
-contrast gone at the visibility). A veil that takes less at the scene's own depths cannot be told in the photos
-from the surfaces' colours."""
+"""Contrast change a person just notices: the eye's contrast threshold ε on which the WMO defines the
+meteorological optical range (ε = 0.05). A veil that takes less of a surface's contrast at the scene's own
+depths cannot be told in the photos from the surfaces' colours."""
 
 
 def veil_fraction(beta_per_m: float, depth_m: float) -> float:
