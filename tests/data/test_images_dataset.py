@@ -164,8 +164,8 @@ def test_the_default_image_size_follows_the_device():
     from metegs.data.config import auto_max_side
 
     assert auto_max_side(DatasetConfig(), "cuda") == auto_max_side(DatasetConfig(), "cuda:1") == 1600
-    assert auto_max_side(DatasetConfig(), "cpu") == 160
-    assert auto_max_side(DatasetConfig(auto_max_side=640), "cuda") == 640
+    assert auto_max_side(DatasetConfig(), "cpu") == 640
+    assert auto_max_side(DatasetConfig(auto_max_side=320), "cuda") == 320
     cams = Cameras.create(torch.eye(4)[None], 500.0, 500.0, 1000.0, 658.0, 2000, 1316)
     assert auto_downscale(cams, auto_max_side(DatasetConfig(), "cuda")) == 2  # 1000x658
-    assert auto_downscale(cams, auto_max_side(DatasetConfig(), "cpu")) == 16  # 125x82
+    assert auto_downscale(cams, auto_max_side(DatasetConfig(), "cpu")) == 4  # 500x329

@@ -170,8 +170,8 @@ def test_the_run_records_the_image_size_its_device_chose(tmp_path):
         max_steps=1, output_dir=tmp_path, experiment_name="run", device="cpu", progress=False, dataset=ds
     )
     trainer = config.setup()
-    assert trainer.config.dataset.auto_max_side == 160
-    assert trainer.decisions["image size"].startswith("64x48 px: the longer side at most 160 px on cpu")
+    assert trainer.config.dataset.auto_max_side == 640
+    assert trainer.decisions["image size"].startswith("64x48 px: the longer side at most 640 px on cpu")
     trainer.train()
     assert config_changes(trainer.run_dir, config) == []  # None in the suite's config: the device's choice
     assert config_changes(trainer.run_dir, replace(config, dataset=replace(ds, auto_max_side=320))) == ["dataset"]
