@@ -145,7 +145,26 @@ def test_what_cannot_be_undistorted_is_refused(tmp_path):
     with pytest.raises(DataError, match="k4 is only supported with camera_model OPENCV_FISHEYE"):
         NerfstudioParser().parse(tmp_path, DatasetConfig())
     write_scene(tmp_path, n=2, camera_model="EQUIRECTANGULAR")
-    with pytest.raises(DataError, match="frame 0|top level|EQUIRECTANGULAR"):
+    with pytest.raises(DataError, match="the top level: camera_model EQUIRECTANGULAR is unsupported"):
+        NerfstudioParser().parse(tmp_path, DatasetConfig())
+    write_scene(tmp_path, n=2, distortion_params="0.1")
+    with pytest.raises(
+        DataError, match=r"the top level: 'distortion_params' must be a list \[k1, k2, k3, k4, p1, p2\]"
+    ):
+        NerfstudioParser().parse(tmp_path, DatasetConfig())
+    write_scene(tmp_path, n=2, distortion_params=[0.1, "x"])
+    with pytest.raises(DataError, match="'distortion_params'"):
+        NerfstudioParser().parse(tmp_path, DatasetConfig())
+
+
+def test_distortion_beside_depth_maps_is_refused(tmp_path):
+    source = write_scene(tmp_path, n=2, k1=0.1)
+    meta = json.loads(source.read_text())
+    for i, frame in enumerate(meta["frames"]):
+        np.save(tmp_path / f"d{i}.npy", np.ones((24, 32), dtype=np.float32))
+        frame["depth_file_path"] = f"d{i}.npy"
+    source.write_text(json.dumps(meta))
+    with pytest.raises(DataError, match="depth maps beside lens distortion are unsupported"):
         NerfstudioParser().parse(tmp_path, DatasetConfig())
 
 

@@ -214,7 +214,8 @@ def _distortion(meta: dict, frame: dict, view: dict, source: Path, where: str) -
     """The frame's camera (its own keys over the top level's); DataError for what cannot be undistorted."""
     model = frame.get("camera_model", meta.get("camera_model"))
     if model is not None and model not in (*_PERSPECTIVE, _FISHEYE):
-        raise DataError(source, f"{where}: camera_model {model} is unsupported (pinhole and {_FISHEYE} are)")
+        said = where if "camera_model" in frame else "the top level"
+        raise DataError(source, f"{said}: camera_model {model} is unsupported (pinhole and {_FISHEYE} are)")
     coeffs = {}
     for obj, what in ((meta, "the top level"), (frame, where)):
         params = obj.get("distortion_params")
