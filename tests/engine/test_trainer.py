@@ -114,6 +114,30 @@ def test_render_cli(trained, tmp_path):
     assert len(list(out.glob("*_depth.png"))) == len(trainer.dataset.train_indices)
 
 
+def test_render_cli_camera_paths_write_videos_of_the_clean_scene(trained, tmp_path):
+    import json
+
+    import imageio.v3 as iio
+
+    from metegs.cli.render import RenderArgs
+    from metegs.cli.render import main as render_main
+    from metegs.errors import DataError
+
+    trainer, _ = trained
+    spiral = render_main(RenderArgs(run_dir=trainer.run_dir, camera_path="spiral", frames=6, output=tmp_path / "s"))
+    assert spiral.parent == tmp_path / "s" and spiral.stat().st_size > 0
+    if spiral.suffix in (".mp4", ".gif"):
+        frames = iio.imread(spiral, index=None)
+        assert len(frames) == 6 and frames.shape[1:3] == (48, 64) and frames.std() > 1  # the scene, not blank
+    path = tmp_path / "path.json"
+    key = {"camera_to_world": trainer.dataset.cameras.camera_to_worlds[0].reshape(-1).tolist(), "fov": 50}
+    path.write_text(json.dumps({"render_width": 40, "render_height": 30, "fps": 5, "camera_path": [key, key]}))
+    assert render_main(RenderArgs(run_dir=trainer.run_dir, camera_path=str(path), output=tmp_path / "f")).is_file()
+    path.write_text(json.dumps({"render_width": 40, "render_height": 30, "camera_path": [key, {"fov": 50}]}))
+    with pytest.raises(DataError, match=r"camera_path\[1\]: 'camera_to_world' must be 16 numbers"):
+        render_main(RenderArgs(run_dir=trainer.run_dir, camera_path=str(path), output=tmp_path / "g"))
+
+
 def test_missing_data_folder_is_a_clear_error(tmp_path):
     from metegs.errors import DataError
 

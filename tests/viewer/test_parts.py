@@ -141,7 +141,7 @@ def test_training_control_never_blocks_after_finish():
 
 
 def test_video_writer_falls_back(tmp_path, monkeypatch):
-    import metegs.viewer.export as export
+    import metegs.video as export
 
     frames = [np.full((24, 32, 3), 40 * i, np.uint8) for i in range(4)]
     mp4 = write_video(tmp_path / "a.mp4", frames, fps=4)
@@ -191,7 +191,7 @@ def test_mp4_is_h264_for_browsers(tmp_path):
 def test_mp4_without_imageio_ffmpeg_falls_back_to_mp4v_and_says_so(tmp_path, monkeypatch):
     import sys
 
-    import metegs.viewer.export as export
+    import metegs.video as export
 
     monkeypatch.setitem(sys.modules, "imageio_ffmpeg", None)  # `import imageio_ffmpeg` raises ImportError
     monkeypatch.setattr(export, "_warned_mp4v", False)

@@ -258,7 +258,7 @@ def test_browser_plays_the_exported_mp4(tmp_path, monkeypatch):
     import warnings
 
     pytest.importorskip("imageio_ffmpeg", reason="H.264 export needs imageio-ffmpeg (pip install 'metegs[video]')")
-    import metegs.viewer.export as export
+    import metegs.video as export
 
     rng = np.random.default_rng(0)
     frames = [rng.integers(0, 256, (49, 67, 3), dtype=np.uint8) for _ in range(8)]
