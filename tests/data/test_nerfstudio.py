@@ -318,3 +318,34 @@ def test_ply_without_colors_and_bad_ply(tmp_path):
     (tmp_path / "bad.ply").write_bytes(b"not a ply\n")
     with pytest.raises(DataError, match="bad.ply"):
         read_ply_points(tmp_path / "bad.ply")
+
+
+def test_frame_masks_are_read_and_undistorted_with_their_view(tmp_path):
+    from metegs.data.dataset import Dataset
+    from metegs.data.undistort import CACHE_DIR
+
+    source = write_scene(tmp_path, n=3)
+    meta = json.loads(source.read_text())
+    (tmp_path / "masks").mkdir()
+    for i, frame in enumerate(meta["frames"]):
+        mask = np.zeros((24, 32), np.uint8)
+        mask[:, : 8 * (i + 1)] = 255
+        cv2.imwrite(str(tmp_path / "masks" / f"m{i}.png"), mask)
+        frame["mask_path"] = f"masks/m{i}.png"
+    source.write_text(json.dumps(meta))
+    scene = NerfstudioParser().parse(tmp_path, DatasetConfig())
+    ds = Dataset(scene, DatasetConfig(use_masks=True, auto_max_side=32))
+    assert [float(m.mean()) for m in ds.masks] == pytest.approx([0.25, 0.5, 0.75])
+
+    del meta["frames"][1]["mask_path"]  # one frame without: no masks, said once
+    source.write_text(json.dumps(meta))
+    with pytest.warns(UserWarning, match="ignoring the masks, 1 frame"):
+        assert NerfstudioParser().parse(tmp_path, DatasetConfig()).mask_paths is None
+
+    meta["frames"][1]["mask_path"] = "masks/m1.png"
+    meta.update(k1=-0.2)  # distorted: the masks follow their views into the cache
+    source.write_text(json.dumps(meta))
+    scene = NerfstudioParser().parse(tmp_path, DatasetConfig())
+    assert all(CACHE_DIR in p.parts and "masks" in p.parts for p in scene.mask_paths)
+    ds = Dataset(scene, DatasetConfig(use_masks=True, auto_max_side=32))
+    assert 0.1 < float(ds.masks[0].mean()) < 0.4

@@ -14,7 +14,8 @@ Lens distortion (``k1, k2, k3, k4, p1, p2`` or nerfstudio's ``distortion_params`
 per frame or at the top level, as ``ns-process-data`` and instant-ngp write them) is undistorted once and
 cached when ``--dataset.undistort`` is on (the default), as for COLMAP (`metegs.data.undistort`):
 ``OPENCV`` (and the other pinhole models) with k1, k2, k3, p1, p2, and ``OPENCV_FISHEYE`` with k1..k4; clean
-references are undistorted with their view. A radial k4 outside the fisheye model, distortion beside
+references and masks are undistorted with their view. A per-frame ``mask_path`` (white = keep) gives the
+scene's masks when every frame has one (``--dataset.use-masks``). A radial k4 outside the fisheye model, distortion beside
 depth maps, and other camera models (equirectangular, ...) raise a DataError naming the frame.
 """
 
@@ -142,8 +143,9 @@ class NerfstudioParser:
         if missing:
             warn_missing(source, missing)
         clean = find_clean_paths(source.parent, [v["path"] for v in present])
+        masks = _masks(present, source)
         if any(v["distortion"].distorted for v in present):
-            clean = _undistort(present, clean, source, options)
+            clean, masks = _undistort(present, clean, masks, source, options)
         cams = Cameras.create(
             gl_to_cv(np.stack([v["c2w"] for v in present])),
             *([v[k] for v in present] for k in _INTRINSICS),
@@ -158,6 +160,7 @@ class NerfstudioParser:
             names=names,
             image_paths=paths,
             clean_image_paths=clean,
+            mask_paths=masks,
             depths=_npy_depths(present, source),
             train_indices=train,
             test_indices=test,
@@ -180,6 +183,8 @@ class NerfstudioParser:
         view = {"name": os.path.normpath(str(frame["file_path"])), "path": source.parent / str(frame["file_path"])}
         depth = frame.get("depth_file_path")
         view["depth"] = source.parent / str(depth) if isinstance(depth, str) and depth.endswith(".npy") else None
+        mask = frame.get("mask_path")
+        view["mask"] = source.parent / mask if isinstance(mask, str) and mask else None
         view["c2w"] = gl_matrix(frame["transform_matrix"], source, where)
         for key in _INTRINSICS:
             value = frame.get(key, meta.get(key))
@@ -233,24 +238,41 @@ def _distortion(meta: dict, frame: dict, view: dict, source: Path, where: str) -
     return Distortion(*pinhole, (k["k1"], k["k2"], k["p1"], k["p2"], k["k3"]))
 
 
-def _undistort(views: list[dict], clean: list[Path] | None, source: Path, options: DatasetConfig) -> list[Path] | None:
-    """Point distorted views (and their clean references) at undistorted copies with pinhole intrinsics."""
+def _masks(views: list[dict], source: Path) -> list[Path] | None:
+    """Every view's ``mask_path`` file (white = keep), or None when a view has none (with a warning if some do)."""
+    named = [v["mask"] for v in views if v["mask"] is not None]
+    if not named:
+        return None
+    missing = [v["name"] for v in views if v["mask"] is None or not v["mask"].is_file()]
+    if missing:
+        warnings.warn(
+            f"{source}: ignoring the masks, {len(missing)} frame(s) have no mask file (e.g. {missing[0]})", stacklevel=3
+        )
+        return None
+    return [v["mask"] for v in views]
+
+
+def _undistort(
+    views: list[dict], clean: list[Path] | None, masks: list[Path] | None, source: Path, options: DatasetConfig
+) -> tuple[list[Path] | None, list[Path] | None]:
+    """Point distorted views (and their clean references and masks) at undistorted copies with pinhole intrinsics."""
     first = next(v for v in views if v["distortion"].distorted)
     if not options.undistort:
         raise DataError(source, f"{first['name']}: the camera is distorted; rerun with --dataset.undistort")
     if any(v["depth"] is not None for v in views):
         raise DataError(source, f"{first['name']}: depth maps beside lens distortion are unsupported")
     cache = cache_folder(source.parent)
-    clean = list(clean) if clean is not None else None
+    extra = {"clean": None if clean is None else list(clean), "masks": None if masks is None else list(masks)}
     for i, v in enumerate(views):
         camera = v["distortion"]
         if not camera.distorted:
             continue
         v["fl_x"], v["fl_y"], v["cx"], v["cy"] = camera.pinhole(int(v["w"]), int(v["h"]))
         v["path"] = undistorted_copy(v["path"], cache, v["name"], camera)
-        if clean is not None:
-            clean[i] = undistorted_copy(clean[i], cache, os.path.join("clean", v["name"]), camera)
-    return clean
+        for kind, paths in extra.items():
+            if paths is not None:
+                paths[i] = undistorted_copy(paths[i], cache, os.path.join(kind, v["name"]), camera)
+    return extra["clean"], extra["masks"]
 
 
 def _split(meta: dict, names: list[str], source: Path, every: int) -> tuple[list[int], list[int]]:
