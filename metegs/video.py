@@ -14,8 +14,14 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import torch
 
 from metegs.config import atomic_output, atomic_write_bytes
+
+
+def to_uint8(image: torch.Tensor) -> np.ndarray:
+    """[H, W, 3] float in [0, 1] -> contiguous uint8 array (a video frame)."""
+    return np.ascontiguousarray((image.detach().float().clamp(0, 1).cpu().numpy() * 255.0 + 0.5).astype(np.uint8))
 
 
 def save_png(path: Path, image: np.ndarray) -> Path:

@@ -51,12 +51,10 @@ class RenderArgs:
 
 def render_camera_path(trainer, args: RenderArgs) -> Path:
     """The clean scene along ``args.camera_path`` as a video -> the file written (see `metegs.video`)."""
-    import numpy as np
-
     from metegs.engine.init import look_at_point
     from metegs.render import RenderSettings
     from metegs.render.camera_path import interpolate, read_camera_path, spiral
-    from metegs.video import write_video
+    from metegs.video import to_uint8, write_video
 
     ds = trainer.dataset
     views = ds.cameras[sorted(ds.train_indices, key=lambda i: ds.names[i])]
@@ -73,8 +71,7 @@ def render_camera_path(trainer, args: RenderArgs) -> Path:
     frames = []
     for i in track(range(len(cameras)), description="camera path", console=Console(stderr=True)):
         with torch.no_grad():
-            rgb = trainer.rasterizer.render(gaussians, cameras[i], settings).rgb.clamp(0, 1)
-        frames.append((rgb.cpu().numpy() * 255 + 0.5).astype(np.uint8))
+            frames.append(to_uint8(trainer.rasterizer.render(gaussians, cameras[i], settings).rgb))
     out_dir = args.output or Path(args.run_dir) / "renders"
     path = write_video(out_dir / "camera-path.mp4", frames, fps)
     Console(stderr=True).print(f"wrote {len(frames)} frames ({fps:g} fps) to {path}")

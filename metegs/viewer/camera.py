@@ -11,6 +11,7 @@ import torch
 import viser.transforms as vtf
 
 from metegs.cameras import Cameras
+from metegs.video import to_uint8
 
 
 @dataclass(frozen=True)
@@ -119,7 +120,7 @@ def thumbnail(image: torch.Tensor, max_side: int) -> np.ndarray:
     """[H, W, 3] float image in [0, 1] -> uint8 thumbnail whose longer side is at most ``max_side``."""
     import cv2
 
-    arr = (image.detach().float().clamp(0, 1).cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
+    arr = to_uint8(image)
     h, w = arr.shape[:2]
     scale = min(1.0, max_side / max(h, w))
     if scale < 1.0:

@@ -5,7 +5,6 @@ from __future__ import annotations
 import itertools
 import threading
 
-import numpy as np
 import torch
 
 from metegs.cameras import Cameras
@@ -76,8 +75,3 @@ def render_frame(
         return rasterizer.render(snapshot.gaussians, camera, settings).rgb.clamp(0, 1)
     models = weather.models_for(camera)
     return render_with_weather(rasterizer, snapshot.gaussians, models, 0, camera, settings).rgb.clamp(0, 1)
-
-
-def to_uint8(image: torch.Tensor) -> np.ndarray:
-    """[H, W, 3] float in [0, 1] -> contiguous uint8 array."""
-    return np.ascontiguousarray((image.detach().float().clamp(0, 1).cpu().numpy() * 255.0 + 0.5).astype(np.uint8))

@@ -26,6 +26,7 @@ import viser
 from metegs.errors import MetegsError
 from metegs.meteo import intensity_class
 from metegs.render.select import make_rasterizer
+from metegs.video import to_uint8
 from metegs.viewer.camera import (
     ViewPose,
     interpolate_poses,
@@ -37,7 +38,7 @@ from metegs.viewer.camera import (
     thumbnail,
 )
 from metegs.viewer.export import save_png, save_scene_ply, write_video
-from metegs.viewer.render import Snapshot, render_frame, to_uint8
+from metegs.viewer.render import Snapshot, render_frame
 from metegs.viewer.training import TrainingControl
 from metegs.viewer.weather import (
     CLEAR_VISIBILITY_M,
