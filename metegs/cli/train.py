@@ -15,7 +15,8 @@ import tyro
 from rich.console import Console
 
 from metegs.cli import run_cli
-from metegs.config import apply_overrides, load_yaml
+from metegs.config import apply_overrides
+from metegs.engine.run import read_config_file
 from metegs.errors import MetegsError
 from metegs.registry import registry
 
@@ -90,8 +91,7 @@ def parse_args(argv: list[str]) -> Any:
     argv, config_path = pop_config_flag(argv)
     methods = method_configs()
     if config_path is not None:
-        overrides = load_yaml(config_path)
-        overrides.pop("metegs_version", None)
+        overrides = read_config_file(config_path)
         saved_method = overrides.pop("method", None)
         chosen = next((a for a in argv if a in methods), saved_method)
         if chosen is None:

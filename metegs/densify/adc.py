@@ -92,10 +92,9 @@ class AdaptiveDensityControl:
 
     @torch.no_grad()
     def update_stats(
-        self, model: GaussianModel, out: RenderOutput, num_scene: int | None = None, gain: torch.Tensor | None = None
+        self, model: GaussianModel, out: RenderOutput, num_scene: int | None = None
     ) -> None:
-        """Accumulate screen-space gradient norms of the first ``num_scene`` Gaussians (weather ones excluded),
-        each multiplied by ``gain`` [num_scene] when given (e.g. to undo a medium's attenuation)."""
+        """Accumulate screen-space gradient norms of the first ``num_scene`` Gaussians (weather ones excluded)."""
         n = len(model) if num_scene is None else num_scene
         if self.state is None or self.state.grad_sum.shape[0] != len(model):
             self.state = DensifyState.zeros(len(model), model.device)
@@ -105,8 +104,6 @@ class AdaptiveDensityControl:
         grad = grad[:n] * torch.tensor([out.width / 2.0, out.height / 2.0], device=grad.device)
         visible = out.radii[:n] > 0
         norm = grad.norm(dim=-1)
-        if gain is not None:
-            norm = norm * gain
         self.state.grad_sum[visible] += norm[visible]
         self.state.count[visible] += 1
         self.state.max_radii[visible] = torch.maximum(

@@ -11,7 +11,7 @@ from metegs.engine.config import TrainConfig
 from metegs.losses.perceptual import PerceptualLossConfig
 from metegs.losses.robust import RobustMaskConfig
 from metegs.models.gtn import GTNConfig
-from metegs.validate import NON_NEGATIVE, Range
+from metegs.validate import NON_NEGATIVE
 from metegs.weather.fog_analytic import FogAnalyticConfig
 from metegs.weather.fog_gaussians import FogGaussiansConfig
 from metegs.weather.learnable import LearnableWeatherConfig
@@ -53,10 +53,6 @@ class MeteGSConfig(TrainConfig):
     """Gaussian Transformation Network of the weather branch."""
     perceptual: PerceptualLossConfig = field(default_factory=PerceptualLossConfig)
     """Perceptual loss of the clean branch (backbone and layers)."""
-    densify_through_fog: Annotated[float, Range(1)] = 10.0
-    """Densification sees the scene as if unfogged: each scene Gaussian's screen-space gradient is divided by the
-    fog's transmittance at its distance, by at most this factor (1: off). Without it fog, which scales every
-    gradient reaching the scene by t, slows densification by the mean t."""
     depth_prune: bool = True
     """Depth-aware pruning: the opacity threshold falls with normalised camera depth."""
     depth_prune_options: DepthPruneConfig = field(default_factory=DepthPruneConfig)

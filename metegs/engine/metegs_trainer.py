@@ -19,7 +19,7 @@ from metegs.losses.robust import inlier_weights
 from metegs.models.gtn import may_be_visible
 from metegs.render import RenderSettings
 from metegs.weather.base import WeatherModel, WeatherScene
-from metegs.weather.compose import render_with_weather, scene_transmittance
+from metegs.weather.compose import render_with_weather
 from metegs.weather.learnable import LearnableTransients
 
 LIGHT_OR_NONE = ("none", "light")
@@ -262,7 +262,7 @@ class MeteGSTrainer(Trainer):
         loss.backward()
         # densification follows the photo fit only: weather Gaussians excluded, the clean branch's small
         # reference terms do not count twice
-        self.densifier.update_stats(self.model, weather.out, weather.num_scene, self._densify_gain(index))
+        self.densifier.update_stats(self.model, weather.out, weather.num_scene)
         for opt in (*self.optimizers.values(), *self.method_optimizers.values()):
             opt.step()
             opt.zero_grad(set_to_none=True)
@@ -273,16 +273,6 @@ class MeteGSTrainer(Trainer):
             mse = float(((weather.rgb.clamp(0, 1) - target) ** 2).mean())
         stats.update({"loss": float(loss.detach()), "psnr": -10 * torch.log10(torch.tensor(max(mse, 1e-10))).item()})
         return {**stats, **changes}
-
-    @torch.no_grad()
-    def _densify_gain(self, index: int) -> torch.Tensor | None:
-        """[N] 1 / (fog transmittance of each scene Gaussian from view ``index``), at most `densify_through_fog`;
-        None without an attenuating medium."""
-        limit = self.config.densify_through_fog
-        if limit <= 1.0:
-            return None
-        t = scene_transmittance(self.weather_models, self.model.params["means"], index)
-        return None if t is None else 1.0 / t.clamp_min(1.0 / limit)
 
     def _reference_features(self, index: int, reference: torch.Tensor) -> list[dict[str, torch.Tensor]]:
         """Perceptual features of a view's clean reference, kept while they fit in `PERCEPTUAL_CACHE_MB`

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import replace
 from pathlib import Path
 
@@ -16,14 +17,31 @@ def run_folder(path: Path) -> Path:
     return path.parent if path.suffix in (".yml", ".yaml") and not path.is_dir() else path
 
 
+RETIRED_FIELDS = {
+    "densify_through_fog": "densification no longer undoes the fog's attenuation (it grew the streaks of single "
+    "photos in the far, foggy parts of the views)",
+}
+"""Top-level config fields that metegs no longer has, and why: a run folder saved with one still opens."""
+
+
+def read_config_file(path: Path) -> dict:
+    """The fields of a config YAML (a run's config.yml or a user's file): its ``metegs_version`` left out, and
+    `RETIRED_FIELDS` left out with a warning that says why."""
+    data = load_yaml(path)
+    data.pop("metegs_version", None)
+    for name in sorted(RETIRED_FIELDS.keys() & data.keys()):
+        data.pop(name)
+        warnings.warn(f"{path}: ignoring {name!r}: {RETIRED_FIELDS[name]}", stacklevel=2)
+    return data
+
+
 def load_run_config(run_dir: Path):
     """The TrainConfig saved in ``run_dir/config.yml`` (rebuilt on the method's defaults); ``run_dir`` may be the
     config.yml itself."""
     path = run_folder(run_dir) / "config.yml"
     if not path.is_file():
         raise DataError(path, "no config.yml: not a metegs run folder")
-    data = load_yaml(path)
-    data.pop("metegs_version", None)
+    data = read_config_file(path)
     method = data.pop("method", None)
     if method is None:
         raise ConfigError(f"{path}: the field 'method' is missing")

@@ -76,14 +76,3 @@ def render_with_weather(
     return WeatherRender(
         rgb=rgb, out=out, num_scene=len(scene_gaussians), num_weather=len(gaussians) - len(scene_gaussians)
     )
-
-
-def scene_transmittance(models: Sequence[WeatherModel], points: torch.Tensor, view: int) -> torch.Tensor | None:
-    """Product of the active models' transmittances of world points [N, 3] seen from view ``view`` -> [N], or
-    None when no model attenuates the scene."""
-    total = None
-    for m in models:
-        t = m.transmittance(points, view) if m.active else None
-        if t is not None:
-            total = t if total is None else total * t
-    return total

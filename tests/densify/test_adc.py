@@ -118,15 +118,3 @@ def test_weather_gaussians_do_not_enter_statistics():
     out.radii = torch.full((5,), 5, dtype=torch.int32)
     adc.update_stats(model, out, num_scene=2)
     assert adc.state.count.tolist() == [1.0, 1.0]
-
-
-def test_gain_scales_each_gaussians_statistic():
-    """A medium's attenuation undone per Gaussian: the accumulated norm is the gradient norm times its gain."""
-    model, _ = model_with([0.01, 0.01, 0.01], [0.5] * 3)
-    adc = AdaptiveDensityControl(ADCConfig(), max_steps=3000, extent=1.0)
-    out = fake_render(model, [[3e-5, 4e-5]] * 3)
-    adc.update_stats(model, out, gain=torch.tensor([1.0, 2.0, 10.0]))
-    plain = AdaptiveDensityControl(ADCConfig(), max_steps=3000, extent=1.0)
-    plain.update_stats(model, out)
-    assert torch.allclose(adc.state.grad_sum, plain.state.grad_sum * torch.tensor([1.0, 2.0, 10.0]))
-    assert adc.state.count.tolist() == plain.state.count.tolist()

@@ -84,3 +84,14 @@ def test_help_lists_every_component_kind_and_marks_plugins():
         assert "test-hail [metegs-hail]" in components_help()
     finally:
         reg.unregister("test-hail")
+
+
+def test_a_config_with_a_retired_field_still_opens_and_says_why(tmp_path):
+    cfg = parse_args(["metegs-full", "--max-steps", "17"])
+    save_yaml(cfg, tmp_path / "config.yml", header={"metegs_version": "0", "densify_through_fog": 10.0})
+    with pytest.warns(UserWarning, match="config.yml: ignoring 'densify_through_fog': densification no longer"):
+        again = parse_args(["--config", str(tmp_path / "config.yml")])
+    assert to_dict(again) == to_dict(cfg)
+    (tmp_path / "new.yaml").write_text("densify_thru_fog: 10\n")  # a field that never was stays an error
+    with pytest.raises(MetegsError, match="densify_thru_fog"):
+        parse_args(["metegs-full", "--config", str(tmp_path / "new.yaml")])

@@ -13,7 +13,6 @@ from metegs.meteo import CameraSpec, theta_from_values
 from metegs.render.base import RenderOutput, RenderSettings
 from metegs.render.torch_backend import TorchRasterizer
 from metegs.weather import WeatherScene, build_weather_models, render_with_weather
-from metegs.weather.compose import scene_transmittance
 from metegs.weather.fog_analytic import FogAnalytic, FogAnalyticConfig
 from metegs.weather.fog_gaussians import FogGaussiansConfig
 from metegs.weather.rain_streaks import RainStreaks, RainStreaksConfig
@@ -102,19 +101,6 @@ def test_fog_gaussians_transmittance_within_one_percent(depth):
     assert measured == pytest.approx(expected, rel=0.01)
     centre = float(1.0 - r.rgb[H // 2 - 1 : H // 2 + 1, W // 2 - 1 : W // 2 + 1].mean())
     assert float(fog.transmittance(torch.tensor([[0.0, 0.0, depth]]), 0)) == pytest.approx(centre, rel=0.02)
-
-
-def test_scene_transmittance_multiplies_the_media_and_ignores_the_rest():
-    theta = theta_from_values(10.0, visibility_m=300.0, fog_kind="fog", camera=spec())
-    scene = weather_scene()
-    fog = FogAnalytic(FogAnalyticConfig(airlight=(1.0, 1.0, 1.0)), theta, scene)
-    rain = RainStreaks(RainStreaksConfig(), theta, scene)
-    points = torch.tensor([[0.0, 0.0, 30.0], [3.0, 4.0, 0.0]])  # 30 m and 5 m from the camera
-    assert rain.transmittance(points, 0) is None and scene_transmittance([rain], points, 0) is None
-    one = scene_transmittance([rain, fog], points, 0)
-    expected = torch.exp(-torch.tensor([30.0, 5.0])[:, None] * fog.beta_rgb.detach()).mean(-1)
-    assert torch.allclose(one, expected, rtol=1e-6)
-    assert torch.allclose(scene_transmittance([fog, rain, fog], points, 0), one**2, rtol=1e-6)
 
 
 def test_zero_weather_renders_the_clean_image_and_adds_nothing():

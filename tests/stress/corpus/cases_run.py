@@ -354,7 +354,7 @@ BAD_OPTIONS = [
     ("--loss.ssim-lambda", "1.5", "3dgs"), ("--weights.photo", "-1", "metegs-full"),
     ("--weights.perceptual", "inf", "metegs-full"), ("--gtn.lr", "nan", "metegs-full"),
     ("--gtn.max-factor", "0.5", "metegs-full"), ("--gtn.width", "0", "metegs-full"),
-    ("--weather-lr", "-1", "metegs-full"), ("--densify-through-fog", "0", "metegs-full"),
+    ("--weather-lr", "-1", "metegs-full"),
 ]  # fmt: skip
 
 CASES += [
