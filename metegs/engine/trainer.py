@@ -512,13 +512,18 @@ class Trainer:
         write_result(self.run_dir / "metrics.json", json.dumps(metrics, indent=2))
         if self.config.save_renders:
             self.save_renders(idx, split)
-        save_ply(self.model, self.run_dir / "scene.ply", comments=self._ply_comments())
+        save_ply(self.model, self.run_dir / "scene.ply", **self.ply_layout())
         return metrics
 
-    def _ply_comments(self) -> list[str]:
-        up = self.scene.up
+    def ply_layout(self) -> dict:
+        """How the scene's PLY files are written (`save_ply` keywords): turned so that splat viewers show the scene
+        upright (`metegs.gaussians.rotate`; `load_ply` turns it back), with header comments saying so."""
+        from metegs.gaussians.rotate import upright_rotation
+
+        rotation = upright_rotation(self.scene.up)
+        up = rotation @ np.asarray(self.scene.up, np.float64)
         axis = "xyz"[int(np.argmax(np.abs(up)))]
-        return [f"Vertical Axis: {axis}", "SplatRenderMode: default"]
+        return {"comments": [f"Vertical Axis: {axis}", "SplatRenderMode: default"], "world_to_file": rotation}
 
     def save_renders(self, indices: list[int], split: str) -> None:
         from metegs.data.images import save_image

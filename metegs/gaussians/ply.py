@@ -42,6 +42,8 @@ _REQUIRED = ("x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
              "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3")  # fmt: skip
 _F_REST = re.compile(r"f_rest_(\d+)$")
 _MAX_HEADER_BYTES = 1 << 20
+WORLD_TO_FILE = "metegs world_to_file"
+"""Header comment (then the 9 row-major entries of a rotation) of a file written turned from metegs's world."""
 MAX_LOG_SCALE = 20.0
 """Largest ``scale_*`` (log standard deviation) a PLY may hold: exp(20) ≈ 5e8 scene units."""
 
@@ -83,6 +85,7 @@ def save_ply(
     path: str | Path,
     *,
     comments: Iterable[str] = (),
+    world_to_file: np.ndarray | None = None,
 ) -> int:
     """Write Gaussians as an INRIA 3DGS PLY (binary little-endian float32), atomically.
 
@@ -90,6 +93,9 @@ def save_ply(
         quats [N,4] wxyz, opacities [N] logit, sh0 [N,1,3], shN [N,K-1,3]).
     comments: extra header lines, each written as ``comment <text>`` after ``comment metegs <version>``
         (e.g. ``"Vertical Axis: z"``).
+    world_to_file: a [3, 3] rotation to write the Gaussians in (e.g. `metegs.gaussians.rotate.upright_rotation`,
+        so that splat viewers show the scene upright); it is recorded in the header (`WORLD_TO_FILE`) and
+        `load_ply` turns the Gaussians back. None or the identity: written as they are.
 
     Rows with any non-finite value are dropped with a warning saying how many. The file is written to a
     temporary file in the destination folder and renamed over ``path``, so an existing file is never
@@ -98,6 +104,14 @@ def save_ply(
     from metegs import __version__
 
     path = Path(path)
+    comments = list(comments)
+    if world_to_file is not None and not np.allclose(world_to_file, np.eye(3)):
+        from metegs.gaussians.rotate import rotate_state
+
+        state = model_or_state.params if isinstance(model_or_state, GaussianModel) else model_or_state
+        model_or_state = rotate_state({k: torch.as_tensor(state[k]).detach() for k in PARAM_NAMES}, world_to_file)
+        numbers = " ".join(f"{float(x):.17g}" for x in np.asarray(world_to_file, np.float64).reshape(-1))
+        comments.append(f"{WORLD_TO_FILE} {numbers}")
     a = _state_arrays(model_or_state)
     n, k1 = a["means"].shape[0], a["shN"].shape[1]
     rest = a["shN"].transpose(0, 2, 1).reshape(n, 3 * k1)  # channel-major [N, 3*(K-1)]
@@ -338,6 +352,28 @@ def load_ply(path: str | Path) -> GaussianModel:
         "sh0": cols("f_dc_0", "f_dc_1", "f_dc_2").reshape(n, 1, 3),
         "shN": np.ascontiguousarray(rest),
     }
-    model = GaussianModel.from_state({k: torch.from_numpy(np.ascontiguousarray(a)) for k, a in state.items()}, degree)
+    tensors = {k: torch.from_numpy(np.ascontiguousarray(a)) for k, a in state.items()}
+    rotation = _world_to_file(path)
+    if rotation is not None:  # written turned (upright for viewers): back into the world it was trained in
+        from metegs.gaussians.rotate import rotate_state
+
+        tensors = rotate_state(tensors, rotation.T)
+    model = GaussianModel.from_state(tensors, degree)
     model.active_sh_degree = degree
     return model
+
+
+def _world_to_file(path: Path) -> np.ndarray | None:
+    """The [3, 3] rotation a metegs PLY was written in (its `WORLD_TO_FILE` header comment), or None."""
+    with open(path, "rb") as f:
+        comments = _read_header(path, f).comments
+    for c in comments:
+        if c.startswith(WORLD_TO_FILE):
+            try:
+                r = np.array([float(x) for x in c[len(WORLD_TO_FILE) :].split()], np.float64).reshape(3, 3)
+            except ValueError:
+                r = None
+            if r is None or not np.allclose(r @ r.T, np.eye(3), atol=1e-6) or np.linalg.det(r) < 0:
+                raise DataError(path, f"header comment {c!r} is not a rotation (9 numbers, row-major)")
+            return r
+    return None

@@ -776,7 +776,7 @@ class Viewer:
         """The clean scene Gaussians (never weather) -> OUTPUT/scene-step-N.ply."""
         snap = self.snapshot
         path = save_scene_ply(
-            self.output_dir / f"scene-step-{snap.step:06d}.ply", snap, comments=self.trainer._ply_comments()
+            self.output_dir / f"scene-step-{snap.step:06d}.ply", snap, **self.trainer.ply_layout()
         )
         self._exported(client, path, "clean scene saved", download=False)
         return path
