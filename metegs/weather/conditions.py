@@ -46,7 +46,8 @@ class ConditionsConfig:
     wind_dir_deg: Annotated[float | None, Range(0, 360)] = None
     """Explicit direction the wind blows from, degrees clockwise from north, 0-360 (with --conditions.precip-mm-h)."""
     exposure_s: Annotated[float | None, Range(0, 3600, lo_open=True)] = None
-    """Exposure time, s (at most an hour); None: the dataset's (the nerfstudio ``metegs`` block), else 1/60 s."""
+    """Exposure time, s (at most an hour); None: the photos' (their EXIF, or the nerfstudio ``metegs`` block;
+    the median over the views), else 1/60 s."""
     metres_per_unit: Annotated[float | None, POSITIVE] = None
     """Metres per scene unit for the weather; None: the scene's own scale (metric scenes), else 1."""
     capture_width_px: Annotated[int, Range(0, 100_000)] = 1920
@@ -76,12 +77,13 @@ def camera_spec(
     far_max_m: float = 10.0,
     far_m: float | None = None,
 ) -> CameraSpec:
-    """The camera θ is mapped for: the first view's field of view at the capture resolution, its exposure
-    (``exposure_s``, else the cameras', else 1/60 s), streaks no farther than ``far_max_m`` (or at ``far_m``)."""
+    """The camera θ is mapped for: the first view's field of view at the capture resolution, an exposure
+    (``exposure_s``, else the views' median, from their EXIF or the scene file, else 1/60 s), streaks no farther
+    than ``far_max_m`` (or at ``far_m``)."""
     width, height, fx, fy = (float(v[0]) for v in (cameras.width, cameras.height, cameras.fx, cameras.fy))
     scale = capture_width_px / width if capture_width_px > 0 else 1.0
     if exposure_s is None and cameras.exposure_time_s is not None:
-        exposure_s = float(cameras.exposure_time_s[0])
+        exposure_s = float(cameras.exposure_time_s.float().median())
     exposure_s = DEFAULT_EXPOSURE_S if exposure_s is None else exposure_s
     if not (math.isfinite(exposure_s) and exposure_s > 0):
         raise ConfigError(f"exposure time must be a positive number of seconds, got {exposure_s}")
@@ -161,10 +163,12 @@ def describe_conditions(theta: Theta) -> str:
 
 
 def describe(theta: Theta) -> str:
-    """One line: the conditions, streak count, total extinction and its fog / rain-veil parts."""
+    """One line: the conditions, streak count (and the exposure that sets their length), total extinction and its
+    fog / rain-veil parts."""
     r, f = theta.rain, theta.fog
+    exposure = f" at 1/{1 / theta.camera.exposure_s:.0f} s" if r.active and theta.camera.exposure_s < 1 else ""
     return (
-        f"{describe_conditions(theta)}; {r.count if r.active else 0} streaks/view, "
+        f"{describe_conditions(theta)}; {r.count if r.active else 0} streaks/view{exposure}, "
         f"extinction β {f.beta_total_per_m:.2e}/m (fog {torch.tensor(f.beta_rgb_per_m).mean():.2e}, "
         f"rain veil {f.beta_rain_per_m:.2e})" + (", fog on" if f.active else "")
     )

@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 from typing import ClassVar, Protocol
 
+import torch
+
 from metegs.data.config import DatasetConfig
+from metegs.data.exif import exposure_times_s
 from metegs.data.scene import SceneData
 from metegs.errors import DataError
 from metegs.registry import registry
@@ -64,5 +68,9 @@ def parse_scene(path: Path | None, parser: str | None, options: DatasetConfig) -
     cls = registry("parser").get(name)
     scene = cls().parse(None if path is None else Path(path), options)
     scene.parser = name
+    if scene.cameras.exposure_time_s is None and scene.image_paths:  # any format: the photos' EXIF
+        times = exposure_times_s(scene.image_paths)
+        if times is not None:
+            scene.cameras = replace(scene.cameras, exposure_time_s=torch.tensor(times, dtype=torch.float32))
     scene.cameras.validate(str(path or name))
     return scene

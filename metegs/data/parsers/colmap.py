@@ -26,6 +26,7 @@ import numpy as np
 
 from metegs.cameras import Cameras, to_homogeneous
 from metegs.data.config import DatasetConfig
+from metegs.data.exif import exposure_times_s
 from metegs.data.parsers.clean import find_clean_paths
 from metegs.data.parsers.colmap_files import check_model, model_file
 from metegs.data.scene import SceneData, split_every_nth
@@ -157,6 +158,7 @@ class ColmapParser:
             [p.cy for p in intr],
             [p.width for p in intr],
             [p.height for p in intr],
+            exposure_time_s=exposure_times_s([image_dir / im.name for im in images]),  # EXIF of the originals
         )
         points, colors = self._points(rec, folder)
         train, test = split_every_nth(len(images), options.test_every)

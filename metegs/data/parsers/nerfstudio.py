@@ -32,6 +32,7 @@ import torch
 
 from metegs.cameras import Cameras, opengl_to_opencv
 from metegs.data.config import DatasetConfig
+from metegs.data.exif import exposure_times_s
 from metegs.data.parsers.clean import find_clean_paths
 from metegs.data.scene import SceneData, split_every_nth
 from metegs.data.undistort import Distortion, cache_folder, undistorted_copy
@@ -144,12 +145,15 @@ class NerfstudioParser:
             warn_missing(source, missing)
         clean = find_clean_paths(source.parent, [v["path"] for v in present])
         masks = _masks(present, source)
+        exposures = [v["exposure"] for v in present]
+        if any(e is None for e in exposures):  # else the photos' EXIF (read before undistorted copies drop it)
+            exposures = exposure_times_s([v["path"] for v in present])
         if any(v["distortion"].distorted for v in present):
             clean, masks = _undistort(present, clean, masks, source, options)
         cams = Cameras.create(
             gl_to_cv(np.stack([v["c2w"] for v in present])),
             *([v[k] for v in present] for k in _INTRINSICS),
-            exposure_time_s=None if any(v["exposure"] is None for v in present) else [v["exposure"] for v in present],
+            exposure_time_s=exposures,
         )
         names = [v["name"] for v in present]
         train, test = _split(meta, names, source, options.test_every)
