@@ -31,6 +31,10 @@ def test_the_shipped_suites_parse():
     assert quick.train["max_steps"] <= 300 and len(quick.conditions) == 1
     assert quick.checks[0].chain() == [("3dgs-clean", ">=", "metegs-blind"), ("metegs-blind", ">", "3dgs")]
     assert quick.checks[1].chain() == [("metegs-full", ">", "3dgs")]
+    real = load_suite(REPO / "configs/bench/real.yaml")  # issue 27's grid: real captures at >= 400 px
+    assert all(s.data is not None and s.train["dataset"]["auto_max_side"] >= 400 for s in real.scenes)
+    kinds = {(c.kind, c.family) for c in real.conditions}
+    assert kinds == {(k, f) for k in ("rain", "fog", "rain+fog") for f in ("physical", "independent")}
 
 
 def _minimal(**extra):

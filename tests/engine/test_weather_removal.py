@@ -10,29 +10,27 @@ against the clean references: less streak energy, a contrast nearer the referenc
 import pytest
 
 from metegs.data.config import DatasetConfig, SyntheticSceneConfig
+from metegs.densify.adc import ADCConfig
 from metegs.engine.compare import train_baseline
-from metegs.engine.metegs_config import MeteGSConfig
 from metegs.weather.conditions import ConditionsConfig
+
+from .test_metegs_trainer import tiny_metegs
 
 
 @pytest.mark.slow
 def test_blind_metegs_leaves_less_weather_than_3dgs_on_weather_it_did_not_make(tmp_path):
     scene = SyntheticSceneConfig(width=160, height=120, num_views=24, num_points=3000)
-    config = MeteGSConfig(
-        method="metegs-full",
+    config = tiny_metegs(
+        tmp_path,
         max_steps=700,
-        output_dir=tmp_path,
-        experiment_name="blind",
-        device="cpu",
-        progress=False,
         dataset=DatasetConfig(synthetic=scene, auto_max_side=160, test_every=6),
+        densify=ADCConfig(),
         checkpoint_every=0,
         save_renders=False,
         degrade="rain+fog",
         degrade_family="independent",
         conditions=ConditionsConfig(precip_mm_h=22.0, visibility_m=300.0),
         clean_supervision=False,
-        compare_baseline=False,
     )
     trainer = config.setup()
     metrics = trainer.train()
