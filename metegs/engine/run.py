@@ -53,7 +53,7 @@ def load_run_config(run_dir: Path):
 
 def load_run(run_dir: Path, checkpoint: Path | None = None, ply: Path | None = None, device: str | None = None):
     """A Trainer set up as the run was, holding the Gaussians of ``ply``, ``checkpoint`` or the latest checkpoint."""
-    from metegs.gaussians.ply import load_ply
+    from metegs.gaussians.ply import load_ply, world_to_file
 
     run_dir = run_folder(run_dir)
     config = load_run_config(run_dir)
@@ -61,7 +61,72 @@ def load_run(run_dir: Path, checkpoint: Path | None = None, ply: Path | None = N
     source = None if ply is not None else checkpoint or run_dir / "checkpoints"
     config = replace(config, load_checkpoint=source, progress=False, device=device or config.device)
     if ply is not None:
-        return config.setup(run_dir=run_dir, model=load_ply(ply))
+        trainer = config.setup(run_dir=run_dir, model=load_ply(ply))
+        if world_to_file(ply) is None:  # another tool's file (or ours rewritten by one): which frame is it in?
+            turn_back_if_upright(trainer, Path(ply))
+        return trainer
     trainer = config.setup(run_dir=run_dir)
     trainer.model.active_sh_degree = trainer.model.max_sh_degree
     return trainer
+
+
+def visible_fraction(means, cameras) -> float:
+    """Share of the points ``means`` [N, 3] (at most 4096 of them, evenly spread) that at least one of
+    ``cameras`` sees in front of it and inside its image."""
+    import torch
+
+    pts = means.detach().double().cpu()[:: max(1, len(means) // 4096)]
+    w2c = cameras.world_to_cameras().double().cpu()
+    cam = torch.einsum("vij,pj->vpi", w2c[:, :3, :3], pts) + w2c[:, None, :3, 3]  # [V, P, 3]
+    z = cam[..., 2].clamp_min(1e-9)
+    u = cameras.fx.double().cpu()[:, None] * cam[..., 0] / z + cameras.cx.double().cpu()[:, None]
+    v = cameras.fy.double().cpu()[:, None] * cam[..., 1] / z + cameras.cy.double().cpu()[:, None]
+    inside = (cam[..., 2] > 0) & (u >= 0) & (v >= 0)
+    inside &= (u < cameras.width.double().cpu()[:, None]) & (v < cameras.height.double().cpu()[:, None])
+    return float(inside.any(dim=0).double().mean()) if len(pts) else 0.0
+
+
+def median_gap(means, points) -> float:
+    """Median distance from the points ``means`` [N, 3] to their nearest of ``points`` [P, 3] (at most 2048 of
+    each, evenly spread): how well a set of Gaussians lies on a scene's own points."""
+    import torch
+
+    a = means.detach().double().cpu()[:: max(1, len(means) // 2048)]
+    b = torch.as_tensor(points, dtype=torch.float64)[:: max(1, len(points) // 2048)]
+    return float(torch.cdist(a, b).amin(dim=1).median())
+
+
+def turn_back_if_upright(trainer, ply: Path) -> None:
+    """A PLY without metegs's turn comment is in its own frame: when it fits the run's scene only turned back from
+    the splat viewers' y-down frame that metegs writes (a metegs scene.ply edited and saved by another tool),
+    turn ``trainer``'s Gaussians back, with a warning that says so. Fit: the median gap to the scene's points
+    (half as far, turned back), else the share the cameras see (twice as much, and most)."""
+    import numpy as np
+
+    from metegs.gaussians.rotate import rotate_state, upright_rotation
+
+    rotation = upright_rotation(trainer.scene.up)
+    if np.allclose(rotation, np.eye(3)):
+        return
+    params = trainer.model.params
+    turned = rotate_state({k: params[k].detach() for k in ("means", "quats", "shN")}, rotation.T)
+    points = trainer.scene.points
+    if points is not None and len(points) > 0:
+        as_is, back = median_gap(params["means"], points), median_gap(turned["means"], points)
+        fits, said = back < 0.5 * as_is, f"median gap to the scene's points {back:.3g} against {as_is:.3g}"
+    else:
+        as_is = visible_fraction(params["means"], trainer.dataset.cameras)
+        back = visible_fraction(turned["means"], trainer.dataset.cameras)
+        fits, said = back > max(2.0 * as_is, 0.5), f"{back:.0%} seen by the cameras against {as_is:.0%}"
+    if fits:
+        import torch
+
+        with torch.no_grad():
+            for k, v in turned.items():
+                params[k].copy_(v)
+        warnings.warn(
+            f"{ply}: no 'metegs world_to_file' comment, but its Gaussians fit the run's scene only turned back "
+            f"from the y-down frame metegs writes for splat viewers ({said}): turned back (a metegs scene.ply "
+            "saved by another tool?)",
+            stacklevel=3,
+        )

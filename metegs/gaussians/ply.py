@@ -353,7 +353,7 @@ def load_ply(path: str | Path) -> GaussianModel:
         "shN": np.ascontiguousarray(rest),
     }
     tensors = {k: torch.from_numpy(np.ascontiguousarray(a)) for k, a in state.items()}
-    rotation = _world_to_file(path)
+    rotation = world_to_file(path)
     if rotation is not None:  # written turned (upright for viewers): back into the world it was trained in
         from metegs.gaussians.rotate import rotate_state
 
@@ -363,7 +363,7 @@ def load_ply(path: str | Path) -> GaussianModel:
     return model
 
 
-def _world_to_file(path: Path) -> np.ndarray | None:
+def world_to_file(path: Path) -> np.ndarray | None:
     """The [3, 3] rotation a metegs PLY was written in (its `WORLD_TO_FILE` header comment), or None."""
     with open(path, "rb") as f:
         comments = _read_header(path, f).comments

@@ -79,7 +79,8 @@ def test_scene_ply_reimports_to_identical_renders(trained):
         a = trainer.rasterizer.render(trainer.model.activated(), cam, settings).rgb
         model.active_sh_degree = trainer.model.active_sh_degree
         b = trainer.rasterizer.render(model.activated(), cam, settings).rgb
-    assert torch.equal(a, b)
+    # the built-in scene is z-up: its file is turned y-down for viewers and back on reading (float32 rounding)
+    assert torch.allclose(a, b, atol=1e-5)
 
 
 def test_resume_from_checkpoint_continues_the_step_count(trained, tmp_path):

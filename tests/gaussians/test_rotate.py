@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 import torch
@@ -122,3 +124,19 @@ def test_run_scene_ply_of_the_z_up_builtin_scene_is_written_upright(tmp_path):
     assert "Vertical Axis: y" in header and WORLD_TO_FILE in header
     back = load_ply(ply)
     assert torch.allclose(back.params["means"], trainer.model.params["means"].detach().cpu(), atol=1e-5)
+
+    # the same file saved by another tool, which drops the header comment: turned back by the cameras' view
+    from metegs.engine.run import load_run
+    from metegs.gaussians.ply import read_ply_vertices
+
+    rows = np.array(read_ply_vertices(ply))
+    lines = ["ply", "format binary_little_endian 1.0", f"element vertex {len(rows)}"]
+    lines += [f"property float {n}" for n in rows.dtype.names] + ["end_header"]
+    (tmp_path / "edited.ply").write_bytes(("\n".join(lines) + "\n").encode() + rows.tobytes())
+    with pytest.warns(UserWarning, match=r"edited\.ply: no 'metegs world_to_file' comment.*turned back"):
+        reopened = load_run(trainer.run_dir, ply=tmp_path / "edited.ply")
+    got = reopened.model.params["means"].detach().cpu()
+    assert torch.allclose(got, trainer.model.params["means"].detach().cpu(), atol=1e-5)
+    with warnings.catch_warnings():  # a file in the run's own frame is left as it is, without a word
+        warnings.simplefilter("error")
+        load_run(trainer.run_dir, ply=ply)
