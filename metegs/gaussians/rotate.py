@@ -2,10 +2,10 @@
 scene upright in common splat viewers.
 
 The INRIA 3DGS outputs, and the COLMAP worlds they come from, have their up direction along −y (the OpenCV
-camera's y points down the image): SuperSplat, the PlayCanvas and three.js splat viewers and Unity's importer
-show such files upright. A scene whose world is z-up (the built-in scene, Blender and nerfstudio captures) would
-lie on its back there, so `scene.ply` is written in that y-down convention (`upright_rotation`) and the rotation
-is recorded in its header, from which `metegs.gaussians.ply.load_ply` undoes it.
+camera's y points down the image), and viewers made for them (SuperSplat) show such files upright. A scene whose
+world is z-up (the built-in scene, Blender and nerfstudio captures) would lie on its back there, so `scene.ply` is
+written in that y-down convention (`upright_rotation`) and the rotation is recorded in its header, from which
+`metegs.gaussians.ply.load_ply` undoes it.
 """
 
 from __future__ import annotations
