@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import statistics
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -33,8 +34,8 @@ def exposure_times_s(paths: Sequence[Path]) -> list[float] | None:
     """Exposure time per image of ``paths`` from their EXIF, seconds; frames without one take the median of the
     others; None when no image has one."""
     times = [exposure_time_s(Path(p)) for p in paths]
-    found = sorted(t for t in times if t is not None)
+    found = [t for t in times if t is not None]
     if not found:
         return None
-    median = found[len(found) // 2] if len(found) % 2 else 0.5 * (found[len(found) // 2 - 1] + found[len(found) // 2])
+    median = statistics.median(found)
     return [median if t is None else t for t in times]

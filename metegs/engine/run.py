@@ -70,22 +70,6 @@ def load_run(run_dir: Path, checkpoint: Path | None = None, ply: Path | None = N
     return trainer
 
 
-def visible_fraction(means, cameras) -> float:
-    """Share of the points ``means`` [N, 3] (at most 4096 of them, evenly spread) that at least one of
-    ``cameras`` sees in front of it and inside its image."""
-    import torch
-
-    pts = means.detach().double().cpu()[:: max(1, len(means) // 4096)]
-    w2c = cameras.world_to_cameras().double().cpu()
-    cam = torch.einsum("vij,pj->vpi", w2c[:, :3, :3], pts) + w2c[:, None, :3, 3]  # [V, P, 3]
-    z = cam[..., 2].clamp_min(1e-9)
-    u = cameras.fx.double().cpu()[:, None] * cam[..., 0] / z + cameras.cx.double().cpu()[:, None]
-    v = cameras.fy.double().cpu()[:, None] * cam[..., 1] / z + cameras.cy.double().cpu()[:, None]
-    inside = (cam[..., 2] > 0) & (u >= 0) & (v >= 0)
-    inside &= (u < cameras.width.double().cpu()[:, None]) & (v < cameras.height.double().cpu()[:, None])
-    return float(inside.any(dim=0).double().mean()) if len(pts) else 0.0
-
-
 def median_gap(means, points) -> float:
     """Median distance from the points ``means`` [N, 3] to their nearest of ``points`` [P, 3] (at most 2048 of
     each, evenly spread): how well a set of Gaussians lies on a scene's own points."""
@@ -99,26 +83,20 @@ def median_gap(means, points) -> float:
 def turn_back_if_upright(trainer, ply: Path) -> None:
     """A PLY without metegs's turn comment is in its own frame: when it fits the run's scene only turned back from
     the splat viewers' y-down frame that metegs writes (a metegs scene.ply edited and saved by another tool),
-    turn ``trainer``'s Gaussians back, with a warning that says so. Fit: the median gap to the scene's points
-    (half as far, turned back), else the share the cameras see (twice as much, and most)."""
+    turn ``trainer``'s Gaussians back, with a warning that says so. Fit: the median gap to the scene's points (half
+    as far, turned back); a scene without points cannot tell, and its file stays as it is."""
     import numpy as np
 
     from metegs.gaussians.rotate import rotate_state, upright_rotation
 
     rotation = upright_rotation(trainer.scene.up)
-    if np.allclose(rotation, np.eye(3)):
+    points = trainer.scene.points
+    if np.allclose(rotation, np.eye(3)) or points is None or len(points) == 0:
         return
     params = trainer.model.params
     turned = rotate_state({k: params[k].detach() for k in ("means", "quats", "shN")}, rotation.T)
-    points = trainer.scene.points
-    if points is not None and len(points) > 0:
-        as_is, back = median_gap(params["means"], points), median_gap(turned["means"], points)
-        fits, said = back < 0.5 * as_is, f"median gap to the scene's points {back:.3g} against {as_is:.3g}"
-    else:
-        as_is = visible_fraction(params["means"], trainer.dataset.cameras)
-        back = visible_fraction(turned["means"], trainer.dataset.cameras)
-        fits, said = back > max(2.0 * as_is, 0.5), f"{back:.0%} seen by the cameras against {as_is:.0%}"
-    if fits:
+    as_is, back = median_gap(params["means"], points), median_gap(turned["means"], points)
+    if back < 0.5 * as_is:
         import torch
 
         with torch.no_grad():
@@ -126,7 +104,7 @@ def turn_back_if_upright(trainer, ply: Path) -> None:
                 params[k].copy_(v)
         warnings.warn(
             f"{ply}: no 'metegs world_to_file' comment, but its Gaussians fit the run's scene only turned back "
-            f"from the y-down frame metegs writes for splat viewers ({said}): turned back (a metegs scene.ply "
-            "saved by another tool?)",
+            f"from the y-down frame metegs writes for splat viewers (median gap to the scene's points {back:.3g} "
+            f"against {as_is:.3g}): turned back (a metegs scene.ply saved by another tool?)",
             stacklevel=3,
         )
