@@ -203,3 +203,44 @@ def test_corrupt_model_names_the_folder(tmp_path):
     (tmp_path / "sparse" / "0" / "points3D.txt").write_text("")
     with pytest.raises(DataError, match="sparse"):
         parse_scene(tmp_path, None, DatasetConfig())
+
+
+@pytest.mark.parametrize("habit", ["stem", "colmap"])
+def test_masks_beside_the_images_are_read_by_either_naming_habit(tmp_path, habit):
+    rec = make_model(tmp_path, n_images=3)
+    (tmp_path / "masks").mkdir()
+    names = sorted(im.name for im in rec.images.values())
+    for name in names:  # nerfstudio/LLFF: a.png for a.jpg; COLMAP's mask_path: a.jpg.png
+        mask = tmp_path / "masks" / (Path(name).stem + ".png" if habit == "stem" else name + ".png")
+        cv2.imwrite(str(mask), np.full((H, W), 255, np.uint8))
+    scene = parse_scene(tmp_path, None, DatasetConfig())
+    assert [p.parent.name for p in scene.mask_paths] == ["masks"] * 3
+    assert [p.name for p in scene.mask_paths] == [
+        Path(n).stem + ".png" if habit == "stem" else n + ".png" for n in scene.names
+    ]
+
+
+def test_a_partial_set_of_masks_is_ignored_with_a_warning(tmp_path):
+    rec = make_model(tmp_path, n_images=3)
+    (tmp_path / "masks").mkdir()
+    first = sorted(im.name for im in rec.images.values())[0]
+    cv2.imwrite(str(tmp_path / "masks" / first), np.full((H, W), 255, np.uint8))
+    with pytest.warns(UserWarning, match=r"masks: ignoring the masks, 2 image\(s\) have none"):
+        scene = parse_scene(tmp_path, None, DatasetConfig())
+    assert scene.mask_paths is None
+
+
+def test_masks_of_distorted_views_are_undistorted_with_them(tmp_path):
+    params = [100.0, 102.0, 79.0, 61.0, -0.25, 0.05, 0.002, -0.001]
+    rec = make_model(tmp_path, "OPENCV", params, n_images=2)
+    (tmp_path / "masks").mkdir()
+    for im in rec.images.values():  # mask = image, an off-centre blob: undistorted alike, they must stay equal
+        blob = (_blob(30.0 + 40 * im.image_id, 35.0) * 255).round().astype(np.uint8)
+        cv2.imwrite(str(tmp_path / "images" / im.name), np.repeat(blob[:, :, None], 3, axis=2))
+        cv2.imwrite(str(tmp_path / "masks" / im.name), blob)
+    scene = parse_scene(tmp_path, None, DatasetConfig())
+    for image, mask in zip(scene.image_paths, scene.mask_paths):
+        assert CACHE_DIR in mask.parts and "masks" in mask.parts and mask != image
+        undistorted = load_image(image)[..., 0]
+        np.testing.assert_allclose(load_image(mask)[..., 0], undistorted, atol=1 / 255)
+        assert undistorted.max() > 0.5

@@ -17,6 +17,7 @@ not undistorted.
 
 from __future__ import annotations
 
+import os
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,6 +30,7 @@ from metegs.data.config import DatasetConfig
 from metegs.data.exif import exposure_times_s
 from metegs.data.parsers.clean import find_clean_paths
 from metegs.data.parsers.colmap_files import check_model, model_file
+from metegs.data.parsers.masks import mask_paths
 from metegs.data.scene import SceneData, split_every_nth
 from metegs.data.undistort import Distortion, cache_folder, undistorted_copy
 from metegs.errors import DataError
@@ -143,13 +145,20 @@ class ColmapParser:
         if not images:
             raise DataError(folder, "the COLMAP model has no registered images")
         images = self._existing(images, image_dir)
-        c2w, intr, paths = [], [], []
+        c2w, intr, paths, lenses = [], [], [], []
         for im in images:
-            pin, file = self._view(im, image_dir, path, folder, options)
+            pin, file, lens = self._view(im, image_dir, path, folder, options)
             w2c = to_homogeneous_np(_cam_from_world(im))
             c2w.append(np.linalg.inv(w2c))
             intr.append(pin)
             paths.append(file)
+            lenses.append(lens)
+        masks = mask_paths(path, [image_dir / im.name for im in images], image_dir)
+        if masks is not None:  # undistorted with their view
+            masks = [
+                m if lens is None else undistorted_copy(m, cache_folder(path), os.path.join("masks", im.name), lens)
+                for m, lens, im in zip(masks, lenses, images)
+            ]
         cams = Cameras.create(
             np.stack(c2w).astype(np.float32),
             [p.fx for p in intr],
@@ -171,6 +180,7 @@ class ColmapParser:
             else None,
             train_indices=train,
             test_indices=test,
+            mask_paths=masks,
             points=points,
             point_colors=colors,
             up=up_from_cameras(np.stack(c2w)),
@@ -207,8 +217,11 @@ class ColmapParser:
         return [im for im in images if im.name not in skip]
 
     @staticmethod
-    def _view(im, image_dir: Path, scene: Path, model_folder: Path, options: DatasetConfig) -> tuple[_Pinhole, Path]:
-        """Pinhole intrinsics and image file of one view (undistorting into the cache if needed)."""
+    def _view(
+        im, image_dir: Path, scene: Path, model_folder: Path, options: DatasetConfig
+    ) -> tuple[_Pinhole, Path, Distortion | None]:
+        """Pinhole intrinsics, image file (undistorted into the cache if needed) and lens distortion (None: none) of
+        one view."""
         cam = im.camera
         model = cam.model.name
         params = np.asarray(cam.params, dtype=np.float64)
@@ -216,7 +229,7 @@ class ColmapParser:
         src = image_dir / im.name
         pin = _pinhole_part(model, params, w, h)
         if model in _PINHOLE:
-            return pin, src
+            return pin, src, None
         cameras_file = model_file(model_folder, "cameras")
         if model not in _DISTORTED:
             raise DataError(
@@ -225,7 +238,7 @@ class ColmapParser:
                 f"{', '.join(_PINHOLE + _DISTORTED)} (undistort with COLMAP image_undistorter first)",
             )
         if np.all(params[_N_INTRINSICS[model] :] == 0.0):
-            return pin, src
+            return pin, src, None
         if not options.undistort:
             raise DataError(
                 cameras_file,
@@ -233,7 +246,7 @@ class ColmapParser:
                 "or undistort with COLMAP image_undistorter",
             )
         camera = _distortion(model, params)
-        return _Pinhole(*camera.pinhole(w, h), w, h), undistorted_copy(src, cache_folder(scene), im.name, camera)
+        return _Pinhole(*camera.pinhole(w, h), w, h), undistorted_copy(src, cache_folder(scene), im.name, camera), camera
 
     @staticmethod
     def _points(rec, folder: Path) -> tuple[np.ndarray | None, np.ndarray | None]:

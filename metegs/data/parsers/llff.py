@@ -12,7 +12,6 @@ actually found and the principal point is the image centre. Masks come from the 
 from __future__ import annotations
 
 import re
-import warnings
 from pathlib import Path
 from typing import ClassVar
 
@@ -23,6 +22,7 @@ from metegs.data.config import DatasetConfig
 from metegs.data.images import image_size, list_images
 from metegs.data.parsers.clean import find_clean_paths
 from metegs.data.parsers.colmap import up_from_cameras
+from metegs.data.parsers.masks import mask_paths
 from metegs.data.parsers.nerfstudio import read_npy
 from metegs.data.scene import SceneData, split_every_nth
 from metegs.errors import DataError
@@ -51,21 +51,6 @@ def image_folder(path: Path) -> Path:
     if not scaled:
         raise DataError(path, "no image folder found (expected images/ or images_N/)")
     return min(scaled)[1]
-
-
-def mask_paths(path: Path, images: list[Path], image_dir: Path) -> list[Path] | None:
-    """Masks matching ``images`` by stem in ``masks`` / ``masks_N`` (same suffix as the image folder), else None."""
-    folder = path / image_dir.name.replace("images", "masks", 1)
-    if not folder.is_dir():
-        return None
-    by_stem = {p.stem: p for p in folder.iterdir() if p.is_file()}
-    missing = [im.name for im in images if im.stem not in by_stem]
-    if missing:
-        warnings.warn(
-            f"{folder}: ignoring the masks, {len(missing)} image(s) have none (e.g. {missing[0]})", stacklevel=3
-        )
-        return None
-    return [by_stem[im.stem] for im in images]
 
 
 class LLFFParser:
