@@ -369,11 +369,13 @@ def world_to_file(path: Path) -> np.ndarray | None:
         comments = _read_header(path, f).comments
     for c in comments:
         if c.startswith(WORLD_TO_FILE):
+            from metegs.gaussians.rotate import is_rotation
+
             try:
                 r = np.array([float(x) for x in c[len(WORLD_TO_FILE) :].split()], np.float64).reshape(3, 3)
             except ValueError:
                 r = None
-            if r is None or not np.allclose(r @ r.T, np.eye(3), atol=1e-6) or np.linalg.det(r) < 0:
+            if r is None or not is_rotation(r):
                 raise DataError(path, f"header comment {c!r} is not a rotation (9 numbers, row-major)")
             return r
     return None

@@ -16,6 +16,7 @@ from functools import lru_cache
 import numpy as np
 import torch
 
+from metegs.cameras import rotation_to_quat_wxyz
 from metegs.gaussians.sh import MAX_SH_DEGREE, eval_sh, num_sh_bases
 
 FILE_UP = np.array([0.0, -1.0, 0.0])
@@ -44,13 +45,15 @@ def sh_basis(dirs: torch.Tensor, degree: int = MAX_SH_DEGREE) -> torch.Tensor:
     k = num_sh_bases(degree)
     coeffs = torch.zeros(k, k, 3, dtype=dirs.dtype)
     coeffs[torch.arange(k), torch.arange(k), 0] = 1.0
-    return torch.stack([eval_sh(degree, coeffs[None, j].expand(len(dirs), k, 3), dirs)[:, 0] - 0.5 for j in range(k)], 1)
+    columns = [eval_sh(degree, coeffs[None, j].expand(len(dirs), k, 3), dirs)[:, 0] - 0.5 for j in range(k)]
+    return torch.stack(columns, 1)
 
 
 @lru_cache(maxsize=16)
 def _sh_rotation_cached(rotation: tuple[float, ...], degree: int) -> torch.Tensor:
     r = torch.tensor(rotation, dtype=torch.float64).reshape(3, 3)
-    dirs = torch.nn.functional.normalize(torch.randn(64, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64), dim=1)
+    sample = torch.randn(64, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    dirs = torch.nn.functional.normalize(sample, dim=1)
     before = sh_basis(dirs, degree)  # Y(d)
     after = sh_basis(dirs @ r, degree)  # Y(Rᵀd): what the rotated coefficients must give at d
     return torch.linalg.lstsq(before, after).solution  # c' = M c with Y(d)·c' = Y(Rᵀd)·c for every d
@@ -78,12 +81,10 @@ def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     )
 
 
-def matrix_to_quat(rotation: np.ndarray) -> torch.Tensor:
-    """[4] wxyz unit quaternion of a [3, 3] rotation matrix."""
-    from scipy.spatial.transform import Rotation
-
-    x, y, z, w = Rotation.from_matrix(np.asarray(rotation, np.float64)).as_quat()
-    return torch.tensor([w, x, y, z], dtype=torch.float64)
+def is_rotation(rotation: np.ndarray) -> bool:
+    """True for a proper [3, 3] rotation matrix (orthonormal to 1e-6, determinant +1)."""
+    r = np.asarray(rotation, np.float64)
+    return r.shape == (3, 3) and np.allclose(r @ r.T, np.eye(3), atol=1e-6) and np.linalg.det(r) > 0
 
 
 def rotate_state(state: Mapping[str, torch.Tensor], rotation: np.ndarray) -> dict[str, torch.Tensor]:
@@ -91,13 +92,14 @@ def rotate_state(state: Mapping[str, torch.Tensor], rotation: np.ndarray) -> dic
     shN [N, K-1, 3] rotated so that each Gaussian shows the same colour towards the rotated directions; the
     other tensors as they were. ``state``: a ``state_tensors()``-style dict."""
     r = np.asarray(rotation, np.float64)
-    if not np.allclose(r @ r.T, np.eye(3), atol=1e-6) or np.linalg.det(r) < 0:
+    if not is_rotation(r):
         raise ValueError(f"rotate_state: not a rotation matrix: {r.tolist()}")
     out = dict(state)
     means = state["means"]
     out["means"] = (means.double() @ torch.as_tensor(r, dtype=torch.float64).T.to(means.device)).to(means.dtype)
     q = state["quats"]
-    out["quats"] = quat_multiply(matrix_to_quat(r).to(q.device), q.double()).to(q.dtype)
+    turn = rotation_to_quat_wxyz(torch.as_tensor(r)).to(q.device)
+    out["quats"] = quat_multiply(turn, q.double()).to(q.dtype)
     shn = state["shN"]
     k = shn.shape[1] + 1
     if k > 1:

@@ -22,31 +22,13 @@ from dataclasses import dataclass, field
 
 import torch
 
+from metegs.cameras import rotation_to_quat_wxyz
 from metegs.gaussians.model import GaussianSet
 from metegs.gaussians.sh import rgb_to_sh
 from metegs.meteo.mapping import Theta
 from metegs.render.base import ALPHA_MIN, RenderSettings
 from metegs.render.projection import project_gaussians
 from metegs.weather.base import WeatherModel, WeatherModelConfig, WeatherScene
-
-
-def rotation_to_quat_wxyz(R: torch.Tensor) -> torch.Tensor:
-    """Rotation matrix [3, 3] -> unit quaternion (w, x, y, z) [4]."""
-    m = R.double()
-    t = m.trace()
-    if t > 0:
-        s = torch.sqrt(t + 1.0) * 2
-        q = torch.stack([0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s])
-    else:
-        i = int(torch.argmax(torch.diagonal(m)))
-        j, k = (i + 1) % 3, (i + 2) % 3
-        s = torch.sqrt(1.0 + m[i, i] - m[j, j] - m[k, k]) * 2
-        q = torch.empty(4, dtype=torch.float64)
-        q[0] = (m[k, j] - m[j, k]) / s
-        q[1 + i] = 0.25 * s
-        q[1 + j] = (m[j, i] + m[i, j]) / s
-        q[1 + k] = (m[k, i] + m[i, k]) / s
-    return (q / q.norm()).to(R.dtype)
 
 
 def horizontal_frame(up: torch.Tensor, forward_hint: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

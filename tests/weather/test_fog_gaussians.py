@@ -5,7 +5,7 @@ import math
 import pytest
 import torch
 
-from metegs.cameras import Cameras
+from metegs.cameras import Cameras, rotation_to_quat_wxyz
 from metegs.data.config import DatasetConfig, SyntheticSceneConfig
 from metegs.data.parsers.base import parse_scene
 from metegs.gaussians.model import GaussianSet
@@ -27,7 +27,6 @@ from metegs.weather.fog_gaussians import (
     truncated_spread,
     uniform_spread_excess,
 )
-from metegs.weather.rain_streaks import rotation_to_quat_wxyz
 
 W, H, F = 64, 48, 60.0
 

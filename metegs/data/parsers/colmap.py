@@ -246,7 +246,8 @@ class ColmapParser:
                 "or undistort with COLMAP image_undistorter",
             )
         camera = _distortion(model, params)
-        return _Pinhole(*camera.pinhole(w, h), w, h), undistorted_copy(src, cache_folder(scene), im.name, camera), camera
+        copy = undistorted_copy(src, cache_folder(scene), im.name, camera)
+        return _Pinhole(*camera.pinhole(w, h), w, h), copy, camera
 
     @staticmethod
     def _points(rec, folder: Path) -> tuple[np.ndarray | None, np.ndarray | None]:
