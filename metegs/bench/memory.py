@@ -1,4 +1,5 @@
-"""Peak memory of a block of work: RSS sampled in a thread on CPU, the allocator's peak on CUDA."""
+"""Peak memory of a block of work (RSS sampled in a thread on CPU, the allocator's peak on CUDA) and the device
+synchronisation that timings need."""
 
 from __future__ import annotations
 
@@ -8,6 +9,12 @@ import threading
 import time
 
 import torch
+
+
+def sync(device: torch.device) -> None:
+    """Wait for ``device``'s queued work (CUDA runs asynchronously: a clock read before this times the launch)."""
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
 
 
 def _trim_heap() -> None:
@@ -37,7 +44,7 @@ class PeakMemory:
 
     def __enter__(self):
         if self.device.type == "cuda":
-            torch.cuda.synchronize(self.device)
+            sync(self.device)
             torch.cuda.reset_peak_memory_stats(self.device)
             self._base = torch.cuda.memory_allocated(self.device)
             return self
@@ -56,7 +63,7 @@ class PeakMemory:
 
     def __exit__(self, *exc):
         if self.device.type == "cuda":
-            torch.cuda.synchronize(self.device)
+            sync(self.device)
             self.peak_mb = (torch.cuda.max_memory_allocated(self.device) - self._base) / 2**20
         else:
             self._stop.set()

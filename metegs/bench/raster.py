@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import torch
 
-from metegs.bench.memory import PeakMemory
+from metegs.bench.memory import PeakMemory, sync
 from metegs.cameras import Cameras
 from metegs.engine.allocator import keep_freed_memory
 from metegs.gaussians.model import GaussianSet
@@ -81,11 +81,6 @@ def benchmark_camera(width: int, height: int) -> Cameras:
     return Cameras.create(torch.eye(4)[None], float(width), float(width), width / 2, height / 2, width, height)
 
 
-def _sync(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-
-
 def _tensors(scene: GaussianSet) -> list[torch.Tensor]:
     """The set's five tensors, the benchmark's parameters."""
     return [getattr(scene, f.name) for f in dataclasses.fields(scene)]
@@ -98,7 +93,7 @@ def _time_step(rasterizer, scene: GaussianSet, cam: Cameras, target: torch.Tenso
     settings = RenderSettings(sh_degree=3)
     for t in _tensors(scene):
         t.grad = None
-    _sync(device)
+    sync(device)
     t0 = time.perf_counter()
     if backward:
         out = rasterizer.render(scene, cam, settings)
@@ -106,7 +101,7 @@ def _time_step(rasterizer, scene: GaussianSet, cam: Cameras, target: torch.Tenso
     else:
         with torch.no_grad():
             out = rasterizer.render(scene, cam, settings)
-    _sync(device)
+    sync(device)
     return (time.perf_counter() - t0) * 1e3, out.num_intersections
 
 

@@ -18,7 +18,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 import torch
 
-from metegs.bench.memory import PeakMemory, rss_mb
+from metegs.bench.memory import PeakMemory, rss_mb, sync
 from metegs.engine.config import TrainConfig
 from metegs.engine.optim import make_optimizers
 from metegs.engine.trainer import Trainer
@@ -50,13 +50,15 @@ class StepRecord:
     """Threads of torch's own ops (loss, Adam, autograd) during the steps."""
 
 
-def resampled_model(points: np.ndarray, colors: np.ndarray, n: int, sh_degree: int, seed: int) -> GaussianModel:
-    """``n`` Gaussians drawn from a point cloud [P, 3] with jitter (no densification needed)."""
+def resampled_model(
+    points: np.ndarray, colors: np.ndarray, n: int, sh_degree: int, seed: int, device: torch.device | str = "cpu"
+) -> GaussianModel:
+    """``n`` Gaussians on ``device`` drawn from a point cloud [P, 3] with jitter (no densification needed)."""
     rng = np.random.default_rng(seed)
     idx = rng.integers(0, len(points), n)
     spread = np.linalg.norm(points.max(0) - points.min(0)) / max(len(points), 1) ** (1 / 3)
     pts = points[idx] + rng.normal(0, 0.1 * spread, (n, 3)).astype(points.dtype)
-    model = GaussianModel.from_points(pts, colors[idx], sh_degree=sh_degree)
+    model = GaussianModel.from_points(pts, colors[idx], sh_degree=sh_degree, device=device)
     model.active_sh_degree = sh_degree
     return model
 
@@ -109,12 +111,15 @@ def _time_sizes(trainer: Trainer, method: str, sizes: list[int], repeats: int, p
     config, scene, views, records = trainer.config, trainer.scene, trainer.dataset.train_indices, []
     hold_at_mid_run(trainer)
     for n in sizes:
-        trainer.model = resampled_model(scene.points, scene.point_colors, n, trainer.model.max_sh_degree, 0)
+        trainer.model = resampled_model(
+            scene.points, scene.point_colors, n, trainer.model.max_sh_degree, 0, device=trainer.device
+        )
         trainer.optimizers = make_optimizers(trainer.model.params, config.optim, trainer.extent)
         times = []
         for i in range(repeats + 1):
             t0 = time.perf_counter()
             trainer.train_step(views[i % len(views)])
+            sync(trainer.device)
             if i > 0:  # the first step warms up
                 times.append(time.perf_counter() - t0)
         # memory in steps of their own: on CPU a thread samples the resident set every 0.5 ms, which would

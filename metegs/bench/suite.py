@@ -33,6 +33,7 @@ import torch
 from rich.console import Console
 
 from metegs.bench.conditions import ResolvedCondition, resolve_condition
+from metegs.bench.memory import sync
 from metegs.bench.suite_config import MethodSpec, SceneSpec, SuiteConfig
 from metegs.config import apply_overrides, atomic_write_text, to_dict
 from metegs.errors import ConfigError, MetegsError
@@ -56,14 +57,13 @@ def render_fps(trainer, repeats: int = 3) -> tuple[float | None, int]:
     idx = list(trainer.dataset.test_indices or trainer.dataset.train_indices)
     if not idx or repeats <= 0:
         return None, 0
-    sync = torch.cuda.synchronize if trainer.device.type == "cuda" else (lambda: None)
     trainer.render(idx[0])  # warm-up (kernels, caches)
-    sync()
+    sync(trainer.device)
     t0 = time.perf_counter()
     for _ in range(repeats):
         for i in idx:
             trainer.render(i)
-    sync()
+    sync(trainer.device)
     elapsed = time.perf_counter() - t0
     return (repeats * len(idx) / elapsed if elapsed > 0 else None), len(idx)
 

@@ -13,7 +13,7 @@ def look_at_point(cameras: Cameras) -> torch.Tensor:
     c = cameras.centers.double()
     d = cameras.camera_to_worlds[:, :3, 2].double()
     d = d / d.norm(dim=1, keepdim=True)
-    eye = torch.eye(3, dtype=torch.float64)
+    eye = torch.eye(3, dtype=torch.float64, device=c.device)
     P = eye[None] - d[:, :, None] * d[:, None, :]
     A = P.sum(0)
     b = (P @ c[:, :, None]).sum(0)
@@ -34,7 +34,9 @@ def visible_count(points: torch.Tensor, cameras: Cameras) -> torch.Tensor:
 
 
 def random_points_in_view_overlap(cameras: Cameras, n: int, seed: int = 0, min_views: int = 3) -> np.ndarray:
-    """``n`` random points in a box around the views' look-at point, each seen by at least ``min_views`` cameras."""
+    """``n`` random points in a box around the views' look-at point, each seen by at least ``min_views`` cameras
+    (drawn on the CPU: the same points on every device)."""
+    cameras = cameras.to("cpu")
     g = torch.Generator().manual_seed(seed)
     center = look_at_point(cameras)
     radius = float((cameras.centers - center).norm(dim=1).median()) * 0.6

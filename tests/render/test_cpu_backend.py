@@ -476,7 +476,7 @@ def test_build_failure_still_trains_through_torch(tmp_path):
     cmd = [sys.executable, "-W", "always::UserWarning", "-m", "metegs.cli.train", "3dgs", "--max-steps", "3",
            "--output-dir", str(tmp_path), "--experiment-name", "nocc", "--dataset.synthetic.num-views", "6",
            "--dataset.synthetic.width", "32", "--dataset.synthetic.height", "24", "--eval-every", "0",
-           "--no-progress"]
+           "--no-progress", "--device", "cpu"]
     res = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
     assert res.returncode == 0, res.stderr[-3000:]
     assert res.stderr.count("CpuBackendWarning") == 1, res.stderr[-3000:]
