@@ -170,6 +170,15 @@ class Cameras:
         """[N, 3] camera centres in world coordinates."""
         return self.camera_to_worlds[:, :3, 3]
 
+    def sees(self, points: torch.Tensor) -> torch.Tensor:
+        """Which views see each point inside their image and in front. points [P, 3] -> [C, P] bool."""
+        w2c = self.world_to_cameras()
+        p = torch.einsum("cij,pj->cpi", w2c[:, :3, :3], points) + w2c[:, None, :3, 3]
+        z = p[..., 2]
+        u = self.fx[:, None] * p[..., 0] / z.clamp_min(1e-6) + self.cx[:, None]
+        v = self.fy[:, None] * p[..., 1] / z.clamp_min(1e-6) + self.cy[:, None]
+        return (z > 1e-3) & (u >= 0) & (u < self.width[:, None]) & (v >= 0) & (v < self.height[:, None])
+
     def resized(self, width: int, height: int) -> Cameras:
         """Cameras for images resized to ``width`` x ``height`` (all views); intrinsics scale with the size."""
         sx = width / self.width.double()

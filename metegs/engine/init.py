@@ -22,17 +22,6 @@ def look_at_point(cameras: Cameras) -> torch.Tensor:
     return torch.linalg.solve(A, b).flatten().float()
 
 
-def visible_count(points: torch.Tensor, cameras: Cameras) -> torch.Tensor:
-    """Number of cameras that see each point inside their image and in front. points [P, 3] -> [P]."""
-    w2c = cameras.world_to_cameras()
-    p = torch.einsum("cij,pj->cpi", w2c[:, :3, :3], points) + w2c[:, None, :3, 3]
-    z = p[..., 2]
-    u = cameras.fx[:, None] * p[..., 0] / z.clamp_min(1e-6) + cameras.cx[:, None]
-    v = cameras.fy[:, None] * p[..., 1] / z.clamp_min(1e-6) + cameras.cy[:, None]
-    inside = (z > 1e-3) & (u >= 0) & (u < cameras.width[:, None]) & (v >= 0) & (v < cameras.height[:, None])
-    return inside.sum(0)
-
-
 def random_points_in_view_overlap(cameras: Cameras, n: int, seed: int = 0, min_views: int = 3) -> np.ndarray:
     """``n`` random points in a box around the views' look-at point, each seen by at least ``min_views`` cameras
     (drawn on the CPU: the same points on every device)."""
@@ -45,7 +34,7 @@ def random_points_in_view_overlap(cameras: Cameras, n: int, seed: int = 0, min_v
     total = 0
     for _ in range(50):
         cand = center + (torch.rand(4 * n, 3, generator=g) * 2 - 1) * radius
-        ok = cand[visible_count(cand, cameras) >= need]
+        ok = cand[cameras.sees(cand).sum(0) >= need]
         kept.append(ok)
         total += ok.shape[0]
         if total >= n:

@@ -20,6 +20,7 @@ from metegs.models.gtn import may_be_visible
 from metegs.render import RenderSettings
 from metegs.weather.base import WeatherModel, WeatherScene
 from metegs.weather.compose import render_with_weather
+from metegs.weather.fog_analytic import FogAnalytic
 from metegs.weather.learnable import LearnableTransients
 
 LIGHT_OR_NONE = ("none", "light")
@@ -122,6 +123,8 @@ class MeteGSTrainer(Trainer):
                         "notices: the photos cannot tell it from the surfaces' colours; removing it could only bias them",
                     )
                     continue
+            if isinstance(model, FogAnalytic):
+                self._decide_record_prior(name, model)
             if getattr(model, "transient", False):
                 model = LearnableTransients(model, list(ds.train_indices), c.learnable_weather)
                 count = sum(len(v.means) for v in model.views.values()) / max(len(model.views), 1)
@@ -130,6 +133,30 @@ class MeteGSTrainer(Trainer):
                 self.decide(f"weather {name}", "on")
             models.append(model)
         return models
+
+    def _decide_record_prior(self, name: str, fog: FogAnalytic) -> None:
+        """Whether ``fog``'s β is held near the record's: ``auto`` asks if the views see the scene's (initial)
+        points over distances far enough apart for the photos to measure β (`MEASURABLE_DISTANCE_SPREAD`)."""
+        from metegs.weather.medium import MEASURABLE_DISTANCE_SPREAD, distance_spread
+
+        mode, beta = fog.config.record_prior, f"{float(fog.record_log_beta.exp().mean()):.2e}/m"
+        if not fog.log_beta.requires_grad:
+            return
+        if mode == "auto":
+            spread = distance_spread(self.dataset.cameras[self.dataset.train_indices], self.model.means.detach())
+            fog.use_record_prior = spread is None or spread < MEASURABLE_DISTANCE_SPREAD
+            seen = "unknown" if spread is None else f"{spread:.2f}"
+            why = (
+                f"the views see a scene point from distances {seen}x apart (median), under "
+                f"{MEASURABLE_DISTANCE_SPREAD}x: the photos cannot tell fog from a hazy scene, so β stays near the "
+                f"record's {beta}"
+                if fog.use_record_prior
+                else f"the views see a scene point from distances {seen}x apart (median): the photos measure β"
+            )
+        else:
+            why = f"--{name}.record-prior {mode}" + (f" (β near {beta})" if fog.use_record_prior else "")
+        weight = f" (weight {fog.config.record_prior_weight:g})" if fog.use_record_prior else ""
+        self.decide(f"{name} prior", f"{'on' if fog.use_record_prior else 'off'}{weight}: {why}")
 
     def _build_gtn(self):
         from metegs.models.gtn import GaussianTransformationNetwork
@@ -212,6 +239,11 @@ class MeteGSTrainer(Trainer):
             optimizers["weather"] = adam(groups, eps=1e-15)
         return optimizers
 
+    def extra_metrics(self) -> dict:
+        """The weather models' learned values next to θ's (e.g. fog β), under ``weather``."""
+        learned = {m.name: s for m in self.weather_models if (s := m.summary()) is not None}
+        return {"weather": learned} if learned else {}
+
     def background(self, training: bool) -> torch.Tensor:
         """[3] Where the clean scene is transparent a view looks into the distance, which the fog model shows as
         its airlight A (the weather branch composites A there): with a fog model, clean renders and references
@@ -246,7 +278,7 @@ class MeteGSTrainer(Trainer):
             stats["inliers"] = float(weights.mean())
         loss = c.weights.photo * self.loss_fn(weather.rgb, target, weights)
         for m in self.weather_models:
-            prior = m.prior(index) if isinstance(m, LearnableTransients) else None
+            prior = m.prior(index)
             if prior is not None:
                 loss = loss + prior
         if self.use_clean and (c.weights.clean > 0 or self.perceptual is not None):

@@ -506,6 +506,7 @@ class Trainer:
             "train_seconds": round(self.train_seconds, 2),
             "wall_seconds": round(time.perf_counter() - self._created, 2),
             "image_size": [int(self.dataset.cameras.width[0]), int(self.dataset.cameras.height[0])],
+            **self.extra_metrics(),
             "per_view": m.get("per_view"),
             "history": self.history,
         }
@@ -514,6 +515,10 @@ class Trainer:
             self.save_renders(idx, split)
         save_ply(self.model, self.run_dir / "scene.ply", **self.ply_layout())
         return metrics
+
+    def extra_metrics(self) -> dict:
+        """Method-specific entries of metrics.json (none for plain 3DGS)."""
+        return {}
 
     def ply_layout(self) -> dict:
         """How the scene's PLY files are written (`save_ply` keywords): turned so that splat viewers show the scene

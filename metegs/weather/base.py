@@ -79,6 +79,15 @@ class WeatherModel(torch.nn.Module):
         view ``view`` -> [N] in (0, 1], or None when the model does not attenuate the scene (the default)."""
         return None
 
+    def prior(self, view: int) -> torch.Tensor | None:
+        """Weighted prior of the model's learnable parameters for a training step on view ``view`` (scalar added
+        to the loss), or None (the default: no prior)."""
+        return None
+
+    def summary(self) -> dict | None:
+        """The model's learned values next to θ's, for metrics.json (JSON-ready), or None."""
+        return None
+
 
 @dataclass
 class WeatherModelConfig(InstantiateConfig):

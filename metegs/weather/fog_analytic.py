@@ -4,17 +4,22 @@ C = C_scene·t + A·(1 − α·t), t = exp(−β·d), with d the distance along 
 rendered z-depth times the ray's length per unit z) and α the rendered opacity: the part of a pixel
 not covered by Gaussians looks into the distance (t = 0) and shows the airlight A. β per colour
 channel comes from θ_fog (visibility by the 5 % rule, minus the rain's share, plus the rain veil);
-β and A are learnable (log-β, logit-A) starting from θ.
+β and A are learnable (log-β, logit-A) starting from θ. A prior holds ln β near θ's: where every view sees the
+scene at about the same depth (forward-facing captures), a hazy scene under less fog fits the photos as well as
+the true fog over the clean scene, and without the prior β drifts down while the scene takes the haze in; where
+the depths differ across views, the photos measure β and outweigh the prior.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Annotated, Literal
 
 import torch
 
 from metegs.meteo.mapping import Theta
 from metegs.render.base import RenderOutput, RenderSettings
+from metegs.validate import NON_NEGATIVE
 from metegs.weather.base import WeatherModel, WeatherModelConfig, WeatherScene
 from metegs.weather.medium import choose_airlight, fog_called_for, fog_extinction_rgb
 
@@ -46,6 +51,11 @@ class FogAnalyticConfig(WeatherModelConfig):
     """Add the rain's extinction beyond the streaks (θ_fog.beta_rain_per_m) when it rains."""
     learnable: bool = True
     """Expose β and A as trainable parameters."""
+    record_prior: Literal["auto", "on", "off"] = "auto"
+    """Hold β near the met record's while training: auto = on where the photos cannot measure β (every view sees
+    the scene from about the same distance, as in forward-facing captures), off where they can."""
+    record_prior_weight: Annotated[float, NON_NEGATIVE] = 0.1
+    """Weight of that prior, record_prior_weight · mean((ln β − ln β_θ)²)."""
 
 
 class FogAnalytic(WeatherModel):
@@ -61,6 +71,9 @@ class FogAnalytic(WeatherModel):
         self._active = fog_called_for(theta, config.include_rain_veil)
         a = choose_airlight(config.airlight, theta, scene).clamp(1e-3, 1 - 1e-3)
         self.log_beta = torch.nn.Parameter(torch.log(beta.clamp_min(1e-12)), requires_grad=config.learnable)
+        self.record_log_beta = self.log_beta.detach().clone()  # not a buffer: checkpoints keep their keys
+        self.use_record_prior = config.record_prior == "on"
+        """Whether `prior` holds β near θ's (the trainer decides ``auto`` from the views' distances)."""
         self.airlight_logit = torch.nn.Parameter(torch.logit(a), requires_grad=config.learnable)
         self._rays: dict[int, torch.Tensor] = {}
 
@@ -92,6 +105,21 @@ class FogAnalytic(WeatherModel):
         distance = out.depth * rays * self.scene.metres_per_unit
         distance = torch.where(out.alpha > 1e-6, distance, torch.zeros_like(distance))
         return fog_composite(color, out.alpha, distance, self.beta_rgb.to(rgb), self.airlight.to(rgb))
+
+    def prior(self, view: int) -> torch.Tensor | None:
+        """record_prior_weight · mean((ln β − ln β_θ)²), or None when β is fixed or the prior is off."""
+        if not (self.use_record_prior and self.log_beta.requires_grad and self.config.record_prior_weight > 0):
+            return None
+        gap = self.log_beta - self.record_log_beta.to(self.log_beta)
+        return self.config.record_prior_weight * (gap**2).mean()
+
+    def summary(self) -> dict:
+        """Learned β (1/m, RGB) and airlight next to θ's β."""
+        return {
+            "beta_per_m": [round(float(b), 6) for b in self.beta_rgb.detach()],
+            "record_beta_per_m": [round(float(b), 6) for b in self.record_log_beta.exp()],
+            "airlight": [round(float(a), 4) for a in self.airlight.detach()],
+        }
 
     def transmittance(self, points: torch.Tensor, view: int) -> torch.Tensor:
         """[N] exp(−β·d) of world points [N, 3] seen from view ``view``, averaged over R, G, B."""

@@ -51,6 +51,31 @@ def typical_depth_m(
     return float(dist.median()) * metres_per_unit
 
 
+MEASURABLE_DISTANCE_SPREAD = 1.5
+"""Median ratio of the farthest to the nearest distance at which the views see a scene point, from which the
+photos measure fog's β themselves (a point's fog changes between its views by exp(−β·Δd)). Below it (forward-
+facing captures: 1.07-1.26 on the Ethiopian head) a hazy scene under thinner fog fits the photos as well as the
+true fog; the built-in scene's surrounding views see points 1.8-2.2 times farther in one view than in another."""
+
+
+def distance_spread(cameras: Cameras, points: torch.Tensor | None, max_points: int = 4096) -> float | None:
+    """Median over scene points seen by at least two views of (largest / smallest camera distance among those
+    views), or None without such points. cameras: the views; points [P, 3] (at most ``max_points`` used)."""
+    if points is None or len(points) == 0:
+        return None
+    pts = torch.as_tensor(points, dtype=torch.float32).cpu()
+    pts = pts[:: max(1, len(pts) // max_points)]
+    cameras = cameras.to("cpu")
+    seen = cameras.sees(pts)  # [C, P]
+    dist = (pts[None] - cameras.centers[:, None]).norm(dim=-1)
+    far = torch.where(seen, dist, torch.zeros_like(dist)).amax(0)
+    near = torch.where(seen, dist, torch.full_like(dist, float("inf"))).amin(0)
+    twice = seen.sum(0) >= 2
+    if not twice.any():
+        return None
+    return float((far[twice] / near[twice]).median())
+
+
 def fog_called_for(theta: Theta, include_rain_veil: bool) -> bool:
     """Fog is reported (or implied by the visibility), or it rains and the rain's veil is wanted."""
     return bool(theta.fog.active or (include_rain_veil and theta.rain.active and theta.fog.beta_rain_per_m > 0))

@@ -81,10 +81,34 @@ def test_weather_gaussians_never_reach_the_scene_model(trained):
 
 
 def test_fog_parameters_learned_from_their_theta_start(trained):
-    trainer, _ = trained
+    trainer, metrics = trained
     fog = next(m for m in trainer.weather_models if m.name == "fog-analytic")
     beta0 = torch.tensor(trainer.theta.fog.beta_rgb_per_m)
     assert not torch.allclose(fog.beta_rgb.detach().cpu(), beta0.float(), rtol=1e-4)
+    saved = json.loads((trainer.run_dir / "metrics.json").read_text())["weather"]["fog-analytic"]
+    assert saved["beta_per_m"] == pytest.approx(fog.beta_rgb.tolist(), rel=1e-4)
+    from metegs.weather.medium import fog_extinction_rgb
+
+    start = fog_extinction_rgb(trainer.theta, include_rain_veil=True)  # θ's fog and the rain's veil
+    assert saved["record_beta_per_m"] == pytest.approx(start.tolist(), rel=1e-4)
+
+
+def test_fog_record_prior_is_on_where_the_views_see_the_scene_from_one_distance(tmp_path):
+    """The built-in scene's views surround it (points seen from distances twice apart): the photos measure β. A
+    forward-facing rig (all views side by side, looking the same way) cannot: β is held near the record's."""
+    conditions = ConditionsConfig(precip_mm_h=0.0, visibility_m=300.0, metres_per_unit=100.0)
+    around = tiny_metegs(tmp_path / "around", conditions=conditions, max_steps=1).setup()
+    assert around.decisions["fog-analytic prior"].startswith("off: the views see a scene point from distances")
+    fog = next(m for m in around.weather_models if m.name == "fog-analytic")
+    assert not fog.use_record_prior and fog.prior(0) is None
+    c2w = around.scene.cameras.camera_to_worlds.clone()
+    c2w[:, :3, :3] = c2w[0, :3, :3]  # every view turned like the first, side by side along its x axis
+    c2w[:, :3, 3] = c2w[0, :3, 3] + torch.linspace(-0.5, 0.5, len(c2w))[:, None] * c2w[0, :3, 0]
+    rig = replace(around.scene, cameras=replace(around.scene.cameras, camera_to_worlds=c2w))
+    facing = tiny_metegs(tmp_path / "facing", conditions=conditions, max_steps=1).setup(scene=rig)
+    assert facing.decisions["fog-analytic prior"].startswith("on (weight 0.1)")
+    fog = next(m for m in facing.weather_models if m.name == "fog-analytic")
+    assert fog.use_record_prior and float(fog.prior(0).detach()) == 0.0
 
 
 def test_clean_views_look_into_the_airlight_where_the_scene_is_transparent(trained):

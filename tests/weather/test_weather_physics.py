@@ -162,3 +162,41 @@ def test_two_views_share_the_fog_but_not_the_rain():
     assert not torch.equal(a.means[: min(len(a), len(b))], b.means[: min(len(a), len(b))])
     again = rain.gaussians_for(0)
     assert torch.equal(a.means, again.means)  # reproducible per view
+
+
+def test_fog_record_prior_pulls_beta_back_to_theta_and_is_off_unless_asked():
+    theta = theta_from_values(0.0, visibility_m=300.0, fog_kind="fog", camera=spec())
+    fog = FogAnalytic(FogAnalyticConfig(record_prior="on", record_prior_weight=0.5), theta, weather_scene())
+    start = fog.log_beta.detach().clone()
+    assert float(fog.prior(0).detach()) == 0.0  # at θ's value
+    with torch.no_grad():
+        fog.log_beta += torch.tensor([0.2, -0.4, 0.0])
+    prior = fog.prior(0)
+    assert float(prior.detach()) == pytest.approx(0.5 * (0.2**2 + 0.4**2) / 3, rel=1e-5)
+    prior.backward()
+    assert torch.all(torch.sign(fog.log_beta.grad) == torch.sign(fog.log_beta.detach() - start))  # descent returns
+    summary = fog.summary()
+    assert summary["record_beta_per_m"] == pytest.approx(start.exp().tolist(), rel=1e-4)
+    assert summary["beta_per_m"][0] > summary["record_beta_per_m"][0] > summary["beta_per_m"][1]
+    assert FogAnalytic(FogAnalyticConfig(), theta, weather_scene()).prior(0) is None  # auto: the trainer decides
+    fixed = FogAnalytic(FogAnalyticConfig(record_prior="on", learnable=False), theta, weather_scene())
+    assert fixed.prior(0) is None
+
+
+def test_distance_spread_is_the_median_far_over_near_ratio_of_points_seen_twice():
+    from metegs.cameras import Cameras
+    from metegs.weather.medium import distance_spread
+
+    def cams(z_positions):  # OpenCV cameras on the z axis looking down +z
+        c2w = torch.eye(4).repeat(len(z_positions), 1, 1)
+        c2w[:, 2, 3] = torch.tensor(z_positions)
+        return Cameras.create(c2w, 50.0, 50.0, 32.0, 24.0, 64, 48)
+
+    points = torch.tensor([[0.0, 0.0, 4.0], [0.0, 0.0, 6.0], [0.0, 0.0, 10.0]])
+    # views at z = 0 and z = 2: distances 4/2, 6/4, 10/8 -> ratios 2, 1.5, 1.25
+    assert distance_spread(cams([0.0, 2.0]), points) == pytest.approx(1.5, rel=1e-5)
+    assert distance_spread(cams([0.0, 0.0]), points) == pytest.approx(1.0)  # every view at one distance
+    assert distance_spread(cams([0.0]), points) is None  # no point seen twice
+    assert distance_spread(cams([0.0, 2.0]), None) is None
+    seen = cams([0.0, 5.0]).sees(points)  # the second view has the first point behind it
+    assert seen.tolist() == [[True, True, True], [False, True, True]]
