@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import hashlib
 import os
 import tempfile
 import types
@@ -132,6 +133,16 @@ def user_cache(*parts: str) -> Path:
     """``$XDG_CACHE_HOME/metegs/<parts>`` (default ``~/.cache/metegs/<parts>``): what metegs keeps between runs."""
     base = os.environ.get("XDG_CACHE_HOME") or "~/.cache"
     return Path(base).expanduser().joinpath("metegs", *parts)
+
+
+def scene_cache(scene: Path, name: str, kind: str) -> Path:
+    """Where metegs caches what it derives from a scene folder: ``<scene>/<name>`` when it can be written, else
+    ``user_cache(kind, <digest of the scene's path>)`` (a read-only dataset is never written to)."""
+    inside = Path(scene) / name
+    if os.access(inside if inside.is_dir() else Path(scene), os.W_OK):
+        return inside
+    digest = hashlib.sha1(str(Path(scene).resolve()).encode()).hexdigest()[:16]
+    return user_cache(kind, digest)
 
 
 def _umask() -> int:

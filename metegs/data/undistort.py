@@ -11,14 +11,13 @@ nerfstudio (pixel centres at +0.5); OpenCV's (centres at integers) only inside t
 from __future__ import annotations
 
 import hashlib
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from metegs.config import atomic_output, user_cache
+from metegs.config import atomic_output, scene_cache
 from metegs.data.images import load_image
 from metegs.errors import DataError
 
@@ -69,11 +68,7 @@ class Distortion:
 
 def cache_folder(scene: Path) -> Path:
     """``<scene>/.metegs_undistorted`` when it can be written, else a folder of the user's cache for this scene."""
-    inside = Path(scene) / CACHE_DIR
-    if os.access(inside if inside.is_dir() else Path(scene), os.W_OK):
-        return inside
-    digest = hashlib.sha1(str(Path(scene).resolve()).encode()).hexdigest()[:16]
-    return user_cache("undistorted", digest)
+    return scene_cache(scene, CACHE_DIR, "undistorted")
 
 
 def undistorted_copy(src: Path, cache: Path, name: str, camera: Distortion) -> Path:

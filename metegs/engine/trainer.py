@@ -250,11 +250,13 @@ class Trainer:
             return self.scene.points, self.scene.point_colors
         if not mc.triangulate or self.scene.image_paths is None:
             return None
+        from metegs.config import scene_cache
         from metegs.data.triangulate import CACHE_DIR, triangulate_known_poses
 
         views = self.dataset.train_indices
         source = self.scene.source
-        cache = None if source is None else (source if source.is_dir() else source.parent) / CACHE_DIR
+        folder = None if source is None else (source if source.is_dir() else source.parent)
+        cache = None if folder is None else scene_cache(folder, CACHE_DIR, "points")
         status = (
             self.console.status(f"triangulating points from {len(views)} training views (pycolmap)")
             if self.console is not None

@@ -160,6 +160,28 @@ def test_trainer_starts_from_triangulated_points_when_the_scene_has_none(photogr
     assert off.random_init and len(calls) == 1
 
 
+def test_a_read_only_scene_caches_its_points_in_the_user_cache(photographed, tmp_path, fake_triangulation, monkeypatch):
+    """A dataset the user cannot write (a shared or mounted folder) is never written to: the points go to
+    ``$XDG_CACHE_HOME/metegs/points/<digest of the scene's path>``, one folder per scene."""
+    import os
+
+    from metegs.engine.config import TrainConfig
+
+    scene, paths = photographed
+    calls, _ = fake_triangulation
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    writable = os.access
+    monkeypatch.setattr(os, "access", lambda p, mode: False if "scene" in str(p) else writable(p, mode))
+    config = TrainConfig(max_steps=1, progress=False, output_dir=tmp_path / "runs")
+    for name in ("scene-a", "scene-b"):
+        (tmp_path / name).mkdir()
+        config.setup(scene=subset(scene, paths, source=tmp_path / name))
+    (a, cache_a), (_, cache_b) = calls
+    assert cache_a.parent == tmp_path / "cache" / "metegs" / "points" and cache_b.parent == cache_a.parent
+    assert cache_a != cache_b
+    assert not any((tmp_path / name / tri.CACHE_DIR).exists() for name in ("scene-a", "scene-b"))
+
+
 def test_trainer_falls_back_to_random_points_when_triangulation_fails(photographed, tmp_path, monkeypatch):
     from metegs.engine.config import TrainConfig
 
