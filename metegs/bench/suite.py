@@ -155,7 +155,7 @@ class SuiteRunner:
             device=s.device,
             threads=s.threads,
             eval_every=s.eval_every,
-            progress=False,
+            progress=self.console.is_terminal,  # a bar per run in a terminal; logs get a line as each run starts
             degrade="off",
             data=scene.data,
             parser=scene.parser,
@@ -238,6 +238,7 @@ class SuiteRunner:
                     config = replace(config, load_checkpoint=resume)
                     self.console.print(f"[dim]{label}: resuming from {resume.name}[/]")
                 trainer = config.setup(run_dir=run_dir, console=None)
+                self.console.print(f"[dim]{label}: training {trainer.config.max_steps} steps[/]", highlight=False)
                 if resume is None:
                     trainer.record_eval(quick=True)  # the curve's first point: the initial model at 0 s
                 trainer.train()
