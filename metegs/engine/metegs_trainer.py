@@ -139,9 +139,9 @@ class MeteGSTrainer(Trainer):
         points over distances far enough apart for the photos to measure β (`MEASURABLE_DISTANCE_SPREAD`)."""
         from metegs.weather.medium import MEASURABLE_DISTANCE_SPREAD, distance_spread
 
-        mode, beta = fog.config.record_prior, f"{float(fog.record_log_beta.exp().mean()):.2e}/m"
         if not fog.log_beta.requires_grad:
             return
+        mode, beta = fog.config.record_prior, f"{float(fog.record_log_beta.exp().mean()):.2e}/m"
         if mode == "auto":
             spread = distance_spread(self.dataset.cameras[self.dataset.train_indices], self.model.means.detach())
             fog.use_record_prior = spread is None or spread < MEASURABLE_DISTANCE_SPREAD

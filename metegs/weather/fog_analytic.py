@@ -71,7 +71,8 @@ class FogAnalytic(WeatherModel):
         self._active = fog_called_for(theta, config.include_rain_veil)
         a = choose_airlight(config.airlight, theta, scene).clamp(1e-3, 1 - 1e-3)
         self.log_beta = torch.nn.Parameter(torch.log(beta.clamp_min(1e-12)), requires_grad=config.learnable)
-        self.record_log_beta = self.log_beta.detach().clone()  # not a buffer: checkpoints keep their keys
+        # θ's β for the prior: moves with the model, stays out of checkpoints (their keys are unchanged)
+        self.register_buffer("record_log_beta", self.log_beta.detach().clone(), persistent=False)
         self.use_record_prior = config.record_prior == "on"
         """Whether `prior` holds β near θ's (the trainer decides ``auto`` from the views' distances)."""
         self.airlight_logit = torch.nn.Parameter(torch.logit(a), requires_grad=config.learnable)
@@ -110,7 +111,7 @@ class FogAnalytic(WeatherModel):
         """record_prior_weight · mean((ln β − ln β_θ)²), or None when β is fixed or the prior is off."""
         if not (self.use_record_prior and self.log_beta.requires_grad and self.config.record_prior_weight > 0):
             return None
-        gap = self.log_beta - self.record_log_beta.to(self.log_beta)
+        gap = self.log_beta - self.record_log_beta
         return self.config.record_prior_weight * (gap**2).mean()
 
     def summary(self) -> dict:
