@@ -9,7 +9,10 @@ Layouts (the clean reference of ``<folder>/<file>`` is ``<folder>_clean/<file>``
   frames' paths;
 - ``colmap``: the ``sparse/`` model copied, degraded images in ``images/``;
 - the synthetic scene (in memory): a nerfstudio dataset, ``transforms.json`` (its split, the points in
-  ``points.ply``), ``images/view_NNN.png``, exact depth maps ``depths/view_NNN.npy`` (float32 z-depth, m).
+  ``points.ply``), ``images/view_NNN.png``, exact depth maps ``depths/view_NNN.npy`` (float32 z-depth, m);
+- a scene whose photos metegs read through undistorted copies (COLMAP or nerfstudio frames with lens
+  distortion): the same PINHOLE nerfstudio layout, as the views were trained on (undistorted PNGs, the
+  undistorted cameras), since a mirror of the distorted originals would need the weather distorted too.
 
 Everything is built in a hidden temp folder next to the output and renamed into place at the end: an
 interrupted run leaves no half-written dataset.
@@ -29,6 +32,7 @@ import cv2
 import numpy as np
 
 from metegs.cameras import opencv_to_opengl
+from metegs.config import user_cache
 from metegs.data.parsers.clean import clean_relative_path
 from metegs.data.scene import SceneData
 from metegs.errors import ConfigError, DataError
@@ -99,9 +103,20 @@ def encode_image(image: np.ndarray, suffix: str) -> bytes:
     return buf.tobytes()
 
 
-def output_format(scene: SceneData) -> str:
-    """The format a degraded copy of ``scene`` is written in."""
-    return "nerfstudio" if scene.parser in ("synthetic", "") or scene.source is None else scene.parser
+def reads_cached_copies(scene: SceneData) -> bool:
+    """Whether ``scene``'s views were read from metegs's cached copies of its photos (undistorted views in a hidden
+    folder of the scene or in the user's cache) rather than from the photos themselves."""
+    if scene.source is None or scene.image_paths is None:
+        return False
+    root = (Path(scene.source) if Path(scene.source).is_dir() else Path(scene.source).parent).resolve()
+    cache = user_cache().resolve()
+    for path in scene.image_paths:
+        p = Path(path).resolve()
+        if p.is_relative_to(cache):
+            return True
+        if p.is_relative_to(root) and any(part.startswith(".") for part in p.relative_to(root).parts[:-1]):
+            return True
+    return False
 
 
 class DatasetWriter:
@@ -109,7 +124,9 @@ class DatasetWriter:
 
     def __init__(self, scene: SceneData, root: Path):
         self.scene, self.root = scene, Path(root)
-        self.format = output_format(scene)
+        self.from_memory = scene.source is None or scene.parser in ("synthetic", "") or reads_cached_copies(scene)
+        """Written from the views and cameras as metegs holds them (PINHOLE nerfstudio), not as a mirror."""
+        self.format = "nerfstudio" if self.from_memory else scene.parser
         if self.format not in ("llff", "nerfstudio", "blender", "colmap"):
             raise ConfigError(
                 f"cannot write a degraded copy of a {self.format!r} dataset (llff, nerfstudio, blender, colmap)"
@@ -117,6 +134,8 @@ class DatasetWriter:
         self.source_root = self._source_root()
         self.image_rel = [self._image_rel(i) for i in range(len(scene))]
         """Path of each view's image in the output, relative to it."""
+        if len(set(self.image_rel)) < len(self.image_rel):  # photos of one name in several folders
+            self.image_rel = [f"images/{i:05d}_{Path(r).name}" for i, r in enumerate(self.image_rel)]
         self.clean_rel = [str(clean_relative_path(r)) for r in self.image_rel]
 
     # --- where things go ----------------------------------------------------------------------------------
@@ -128,7 +147,7 @@ class DatasetWriter:
         return src.parent if src.is_file() else src
 
     def _image_rel(self, i: int) -> str:
-        if self.scene.source is None:  # in-memory scene
+        if self.from_memory:
             return f"images/{Path(self.scene.names[i]).stem}.png"
         if self.scene.image_paths is None:
             raise DataError(self.scene.source, "the scene has no image files to mirror")
@@ -160,7 +179,7 @@ class DatasetWriter:
 
     def finish(self, depths: list[np.ndarray] | None = None) -> None:
         """Format metadata (poses, transforms, model) and companion files."""
-        if self.scene.source is None:
+        if self.from_memory:
             self._write_nerfstudio_from_memory(depths)
             return
         src = self.source_root
@@ -214,7 +233,11 @@ class DatasetWriter:
             "train_filenames": [self.image_rel[i] for i in scene.train_indices],
             "test_filenames": [self.image_rel[i] for i in scene.test_indices],
             "metegs": {
-                "source": "synthetic scene" if scene.parser == "synthetic" else scene.parser or "in-memory scene",
+                "source": "synthetic scene"
+                if scene.parser == "synthetic"
+                else f"{scene.parser} scene {scene.source}, undistorted"
+                if scene.source is not None
+                else scene.parser or "in-memory scene",
                 "metric_scale": scene.metric_scale,
                 "up": [float(x) for x in np.asarray(scene.up).reshape(-1)],
                 "exposure_time_s": None

@@ -6,6 +6,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+import torch
 from rich.console import Console
 
 from metegs.cli.synth import SynthArgs, main
@@ -196,3 +197,48 @@ def test_synthetic_copy_reads_back_with_its_scale_exposure_and_up(storm):
     assert scene.metric_scale == original.metric_scale
     assert np.allclose(scene.up, original.up)
     assert torch.allclose(scene.cameras.exposure_time_s, original.cameras.exposure_time_s)
+
+
+def test_a_distorted_capture_is_degraded_as_the_pinhole_views_it_trains_on(tmp_path):
+    """Frames with lens distortion are read through undistorted copies; their degraded copy is a PINHOLE nerfstudio
+    dataset of those views (weather drawn on a distorted original would need distorting too), and reads back with
+    the same cameras."""
+    from metegs.meteo import theta_from_values
+    from metegs.synth.degrade import degrade_scene
+    from metegs.synth.writers import DatasetWriter, reads_cached_copies, staged_output
+    from metegs.weather.conditions import camera_spec
+
+    src = tmp_path / "scene"
+    (src / "images").mkdir(parents=True)
+    rng = np.random.default_rng(0)
+    frames = []
+    for i in range(3):
+        cv2.imwrite(str(src / "images" / f"im_{i}.jpg"), rng.integers(0, 255, (36, 48, 3), dtype=np.uint8))
+        c2w = np.eye(4)
+        c2w[:3, 3] = [0.2 * i, 0.0, 4.0]  # OpenGL: looking down -z at the origin
+        frames.append({"file_path": f"images/im_{i}.jpg", "transform_matrix": c2w.tolist()})
+    meta = {"frames": frames, "fl_x": 40.0, "fl_y": 40.0, "cx": 24.0, "cy": 18.0, "w": 48, "h": 36, "k1": -0.2}
+    (src / "transforms.json").write_text(json.dumps(meta))
+    scene = parse_scene(src, None, DatasetConfig())
+    assert reads_cached_copies(scene)
+    theta = theta_from_values(
+        30.0, visibility_m=50.0, fog_kind="fog", camera=camera_spec(scene.cameras, capture_width_px=0, far_m=5.0)
+    )
+    rainy, _ = degrade_scene(scene, theta, depths=[np.full((36, 48), 4.0, np.float32)] * 3, metres_per_unit=1.0)
+    with staged_output(tmp_path / "out") as tmp:
+        w = DatasetWriter(scene, tmp)
+        assert w.format == "nerfstudio" and w.image_rel == [f"images/im_{i}.png" for i in range(3)]
+        for i in range(3):
+            w.write_view(i, rainy.images[i], rainy.clean_images[i])
+        w.finish()
+    out = tmp_path / "out"
+    written = json.loads((out / "transforms.json").read_text())
+    assert written["camera_model"] == "PINHOLE" and "k1" not in written and "k1" not in written["frames"][0]
+    assert "undistorted" in written["metegs"]["source"]
+    back = parse_scene(out, None, DatasetConfig())
+    assert back.parser == "nerfstudio" and not reads_cached_copies(back)
+    for field in ("fx", "fy", "cx", "cy"):
+        torch.testing.assert_close(getattr(back.cameras, field), getattr(scene.cameras, field))
+    torch.testing.assert_close(back.cameras.camera_to_worlds, scene.cameras.camera_to_worlds)
+    assert all(c.read_bytes() == s.read_bytes() for c, s in zip(back.clean_image_paths, scene.image_paths))
+    assert not (src / "images_clean").exists()  # the source is read, never written (its cache aside)
