@@ -103,12 +103,20 @@ def encode_image(image: np.ndarray, suffix: str) -> bytes:
     return buf.tobytes()
 
 
+def scene_root(scene: SceneData) -> Path | None:
+    """The folder ``scene`` was read from (its source, or the folder of its source file), or None in memory."""
+    if scene.source is None:
+        return None
+    src = Path(scene.source)
+    return src.parent if src.is_file() else src
+
+
 def reads_cached_copies(scene: SceneData) -> bool:
     """Whether ``scene``'s views were read from metegs's cached copies of its photos (undistorted views in a hidden
     folder of the scene or in the user's cache) rather than from the photos themselves."""
     if scene.source is None or scene.image_paths is None:
         return False
-    root = (Path(scene.source) if Path(scene.source).is_dir() else Path(scene.source).parent).resolve()
+    root = scene_root(scene).resolve()
     cache = user_cache().resolve()
     for path in scene.image_paths:
         p = Path(path).resolve()
@@ -131,7 +139,7 @@ class DatasetWriter:
             raise ConfigError(
                 f"cannot write a degraded copy of a {self.format!r} dataset (llff, nerfstudio, blender, colmap)"
             )
-        self.source_root = self._source_root()
+        self.source_root = scene_root(scene)
         self.image_rel = [self._image_rel(i) for i in range(len(scene))]
         """Path of each view's image in the output, relative to it."""
         if len(set(self.image_rel)) < len(self.image_rel):  # photos of one name in several folders
@@ -139,13 +147,6 @@ class DatasetWriter:
         self.clean_rel = [str(clean_relative_path(r)) for r in self.image_rel]
 
     # --- where things go ----------------------------------------------------------------------------------
-    def _source_root(self) -> Path | None:
-        src = self.scene.source
-        if src is None:
-            return None
-        src = Path(src)
-        return src.parent if src.is_file() else src
-
     def _image_rel(self, i: int) -> str:
         if self.from_memory:
             return f"images/{Path(self.scene.names[i]).stem}.png"

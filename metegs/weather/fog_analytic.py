@@ -4,10 +4,11 @@ C = C_scene·t + A·(1 − α·t), t = exp(−β·d), with d the distance along 
 rendered z-depth times the ray's length per unit z) and α the rendered opacity: the part of a pixel
 not covered by Gaussians looks into the distance (t = 0) and shows the airlight A. β per colour
 channel comes from θ_fog (visibility by the 5 % rule, minus the rain's share, plus the rain veil);
-β and A are learnable (log-β, logit-A) starting from θ. A prior holds ln β near θ's: where every view sees the
-scene at about the same depth (forward-facing captures), a hazy scene under less fog fits the photos as well as
-the true fog over the clean scene, and without the prior β drifts down while the scene takes the haze in; where
-the depths differ across views, the photos measure β and outweigh the prior.
+β and A are learnable (log-β, logit-A) starting from θ. Where every view sees the scene at about the same
+distance (forward-facing captures), a hazy scene under less fog fits the photos as well as the true fog over the
+clean scene, and a free β drifts down while the scene takes the haze in: there (``record_prior`` auto, decided by
+the trainer) a prior holds ln β near θ's; where the distances differ across views the photos measure β, and it
+stays free.
 """
 
 from __future__ import annotations
