@@ -24,6 +24,17 @@ def to_uint8(image: torch.Tensor) -> np.ndarray:
     return np.ascontiguousarray((image.detach().float().clamp(0, 1).cpu().numpy() * 255.0 + 0.5).astype(np.uint8))
 
 
+def caption(image: np.ndarray, text: str) -> np.ndarray:
+    """A copy of the RGB uint8 frame ``image`` [H, W, 3] with ``text`` written at its bottom left (white on black)."""
+    out = image.copy()
+    h = out.shape[0]
+    scale = max(0.35, h / 720.0)
+    org = (max(4, h // 40), h - max(6, h // 30))
+    cv2.putText(out, text, org, cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), max(2, int(3 * scale)), cv2.LINE_AA)
+    cv2.putText(out, text, org, cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255), max(1, int(scale)), cv2.LINE_AA)
+    return out
+
+
 def save_png(path: Path, image: np.ndarray) -> Path:
     """Write an RGB uint8 image [H, W, 3] as PNG, atomically."""
     path = Path(path)

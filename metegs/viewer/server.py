@@ -26,7 +26,7 @@ import viser
 from metegs.errors import MetegsError
 from metegs.meteo import intensity_class
 from metegs.render.select import make_rasterizer
-from metegs.video import to_uint8
+from metegs.video import caption, to_uint8
 from metegs.viewer.camera import (
     ViewPose,
     interpolate_poses,
@@ -42,14 +42,11 @@ from metegs.viewer.render import Snapshot, render_frame
 from metegs.viewer.training import TrainingControl
 from metegs.viewer.weather import (
     CLEAR_VISIBILITY_M,
-    DEFAULT_WEATHER,
     STORM_SWEEP_MM_H,
-    MetTimeline,
-    ViewerWeather,
     WeatherValues,
     format_exposure,
+    run_weather,
     sweep_rates,
-    values_from_theta,
 )
 
 MOVING_S = 0.25
@@ -196,42 +193,10 @@ class Viewer:
 
     # --- setup -------------------------------------------------------------------------------------
     def _setup_weather(self) -> None:
-        from metegs.engine.metegs_config import MeteGSConfig
-        from metegs.weather.conditions import DEFAULT_EXPOSURE_S, scene_metres_per_unit, theta_for_cameras
-
-        t, c = self.trainer, self.trainer.config
-        ds = t.dataset
-        names = list(getattr(c, "weather", ()) or DEFAULT_WEATHER)
-        own = c.weather_config if hasattr(c, "weather_config") else MeteGSConfig().weather_config
-        configs = [own(n) or n for n in names]
-        mpu = scene_metres_per_unit(c.conditions, t.scene.metric_scale)
-        train = ds.cameras[ds.train_indices]
-        images = [ds.images[i] for i in ds.train_indices]
-        self.weather = ViewerWeather(configs, train, images, t.scene.up, mpu, c.conditions, seed=c.seed + 7919)
-        exposure = c.conditions.exposure_s
-        if exposure is None:
-            exposure = float(train.exposure_time_s[0]) if train.exposure_time_s is not None else DEFAULT_EXPOSURE_S
-        self.weather_note = ""
-        try:
-            theta = t.theta if t.theta is not None else theta_for_cameras(c.conditions, t.scene.cameras, mpu)
-            self.run_values = values_from_theta(theta, exposure)
-        except (MetegsError, OSError) as exc:
-            self.run_values = WeatherValues(precip_mm_h=6.8, exposure_s=exposure)
-            self.weather_note = f"the run's weather could not be mapped ({exc}); starting from 6.8 mm/h"
-        self.timeline: MetTimeline | None = None
-        try:
-            self.timeline = MetTimeline(c.conditions)
-        except (MetegsError, OSError) as exc:
-            from metegs.weather.conditions import ConditionsConfig
-
-            self.weather_note = f"the run's met record is unavailable ({exc}); the timeline shows the shipped storm"
-            try:
-                self.timeline = MetTimeline(ConditionsConfig())
-            except (MetegsError, OSError):
-                self.timeline = None
-        self.weather.set_values(self.run_values)
-        has_weather = bool(getattr(c, "weather", ()))
-        self.mode = "weather" if has_weather else "clean"
+        run = run_weather(self.trainer)
+        self.weather, self.run_values = run.weather, run.values
+        self.timeline, self.weather_note = run.timeline, run.note
+        self.mode = "weather" if getattr(self.trainer.config, "weather", ()) else "clean"
 
     def _setup_scene(self) -> None:
         t = self.trainer
@@ -775,9 +740,7 @@ class Viewer:
     def export_ply(self, client: viser.ClientHandle | None = None) -> Path:
         """The clean scene Gaussians (never weather) -> OUTPUT/scene-step-N.ply."""
         snap = self.snapshot
-        path = save_scene_ply(
-            self.output_dir / f"scene-step-{snap.step:06d}.ply", snap, **self.trainer.ply_layout()
-        )
+        path = save_scene_ply(self.output_dir / f"scene-step-{snap.step:06d}.ply", snap, **self.trainer.ply_layout())
         self._exported(client, path, "clean scene saved", download=False)
         return path
 
@@ -815,7 +778,7 @@ class Viewer:
                 self._use_threads()
                 rgb = to_uint8(render_frame(self.rasterizer, self.snapshot, camera, self.background, weather))
                 self.sweep_progress.value = 100.0 * (i + 1) / frames
-                yield _caption(rgb, f"{rate:.3g} mm/h  {intensity_class(rate)}")
+                yield caption(rgb, f"{rate:.3g} mm/h  {intensity_class(rate)}")
 
         out = self.output_dir / f"sweep-{_stamp()}.{fmt}"
         try:
@@ -919,18 +882,6 @@ def _ema(x: np.ndarray, alpha: float = 0.1) -> np.ndarray:
 
 def _stamp() -> str:
     return datetime.now().strftime("%Y%m%d-%H%M%S-%f")[:-3]
-
-
-def _caption(image: np.ndarray, text: str) -> np.ndarray:
-    import cv2
-
-    out = image.copy()
-    h = out.shape[0]
-    scale = max(0.35, h / 720.0)
-    org = (max(4, h // 40), h - max(6, h // 30))
-    cv2.putText(out, text, org, cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), max(2, int(3 * scale)), cv2.LINE_AA)
-    cv2.putText(out, text, org, cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255), max(1, int(scale)), cv2.LINE_AA)
-    return out
 
 
 def start_live_viewer(trainer, console=None) -> Viewer:

@@ -209,6 +209,83 @@ class MetTimeline:
         hour = self._cache[index]
         return dataclasses.replace(hour, values=dataclasses.replace(hour.values, exposure_s=exposure_s))
 
+    def at(self, position: float, exposure_s: float) -> tuple[datetime, WeatherValues]:
+        """Time and weather at ``position`` hours after the record's first hour (a fraction blends two hours)."""
+        position = min(max(float(position), 0.0), len(self.times) - 1.0)
+        i = min(int(math.floor(position)), len(self.times) - 1)
+        s = position - i
+        a = self.hour(i, exposure_s).values
+        b = self.hour(min(i + 1, len(self.times) - 1), exposure_s).values
+        return self.times[i] + timedelta(hours=s), blend_values(a, b, s)
+
+
+def blend_values(a: WeatherValues, b: WeatherValues, s: float) -> WeatherValues:
+    """Weather a fraction ``s`` of the way from ``a`` to ``b``: rain rate and wind speed linear, visibility linear in
+    its logarithm (clear air counts as `CLEAR_VISIBILITY_M`), wind direction and exposure those of the nearer."""
+    near = a if s < 0.5 else b
+    va, vb = (CLEAR_VISIBILITY_M if v.visibility_m is None else v.visibility_m for v in (a, b))
+    visibility = math.exp((1 - s) * math.log(va) + s * math.log(vb))
+    return dataclasses.replace(
+        near,
+        precip_mm_h=(1 - s) * a.precip_mm_h + s * b.precip_mm_h,
+        visibility_m=None if visibility >= CLEAR_VISIBILITY_M * (1 - 1e-9) else visibility,
+        wind_speed_m_s=(1 - s) * a.wind_speed_m_s + s * b.wind_speed_m_s,
+    )
+
+
+@dataclass
+class RunWeather:
+    """A trained run's weather, ready to render from any camera."""
+
+    weather: ViewerWeather
+    """The run's weather models (set to ``values``)."""
+    values: WeatherValues
+    """The weather the run trained under (its θ as slider values)."""
+    timeline: MetTimeline | None
+    """Hours of the run's met record (the shipped storm's when the record cannot be read; None when neither can)."""
+    note: str
+    """Why the values or timeline are not the run's own ("" when they are)."""
+
+
+def run_weather(trainer) -> RunWeather:
+    """The weather of ``trainer``'s run: its weather models (or `DEFAULT_WEATHER` for a run without any, such as
+    plain 3DGS), its θ as values and its met record as hours."""
+    from metegs.engine.metegs_config import MeteGSConfig
+    from metegs.errors import MetegsError
+    from metegs.weather.conditions import DEFAULT_EXPOSURE_S, scene_metres_per_unit, theta_for_cameras
+
+    c, ds = trainer.config, trainer.dataset
+    names = list(getattr(c, "weather", ()) or DEFAULT_WEATHER)
+    own = c.weather_config if hasattr(c, "weather_config") else MeteGSConfig().weather_config
+    configs = [own(n) or n for n in names]
+    mpu = scene_metres_per_unit(c.conditions, trainer.scene.metric_scale)
+    train = ds.cameras[ds.train_indices]
+    images = [ds.images[i] for i in ds.train_indices]
+    weather = ViewerWeather(configs, train, images, trainer.scene.up, mpu, c.conditions, seed=c.seed + 7919)
+    exposure = c.conditions.exposure_s
+    if exposure is None:
+        exposure = float(train.exposure_time_s[0]) if train.exposure_time_s is not None else DEFAULT_EXPOSURE_S
+    note = ""
+    try:
+        theta = trainer.theta
+        if theta is None:
+            theta = theta_for_cameras(c.conditions, trainer.scene.cameras, mpu)
+        values = values_from_theta(theta, exposure)
+    except (MetegsError, OSError) as exc:
+        values = WeatherValues(precip_mm_h=6.8, exposure_s=exposure)
+        note = f"the run's weather could not be mapped ({exc}); starting from 6.8 mm/h"
+    timeline = None
+    try:
+        timeline = MetTimeline(c.conditions)
+    except (MetegsError, OSError) as exc:
+        note = f"the run's met record is unavailable ({exc}); the timeline shows the shipped storm"
+        try:
+            timeline = MetTimeline(ConditionsConfig())
+        except (MetegsError, OSError):
+            timeline = None
+    weather.set_values(values)
+    return RunWeather(weather, values, timeline, note)
+
 
 def sweep_rates(frames: int, low_mm_h: float, high_mm_h: float) -> list[float]:
     """Rain rates of a weather sweep: ``frames`` rates, log-spaced from ``low_mm_h`` to ``high_mm_h``."""

@@ -3,6 +3,7 @@
 import json
 from dataclasses import replace
 
+import numpy as np
 import pytest
 import torch
 
@@ -137,6 +138,27 @@ def test_render_cli_camera_paths_write_videos_of_the_clean_scene(trained, tmp_pa
     path.write_text(json.dumps({"render_width": 40, "render_height": 30, "camera_path": [key, {"fov": 50}]}))
     with pytest.raises(DataError, match=r"camera_path\[1\]: 'camera_to_world' must be 16 numbers"):
         render_main(RenderArgs(run_dir=trainer.run_dir, camera_path=str(path), output=tmp_path / "g"))
+
+
+def test_render_cli_weather_along_a_camera_path_follows_the_met_record(trained, tmp_path):
+    import imageio.v3 as iio
+
+    from metegs.cli.render import RenderArgs
+    from metegs.cli.render import main as render_main
+    from metegs.errors import ConfigError
+
+    trainer, _ = trained
+    args = RenderArgs(run_dir=trainer.run_dir, camera_path="interpolate", frames=4, weather="record", hours=3)
+    clean = render_main(replace(args, output=tmp_path))
+    weather = next(tmp_path.glob("camera-path-weather.*"))
+    if clean.suffix not in (".mp4", ".gif"):
+        pytest.skip("no video encoder: frames written as PNG folders")
+    clean_frames, weather_frames = (iio.imread(p, index=None).astype(float) for p in (clean, weather))
+    assert weather_frames.shape == clean_frames.shape == (4, 48, 64, 3)
+    # the shipped storm's rain (6.8 mm/h and more over those hours) changes every frame, below the caption too
+    assert all(np.abs(w - c)[:30].mean() > 2 for w, c in zip(weather_frames, clean_frames))
+    with pytest.raises(ConfigError, match="--camera-path"):
+        RenderArgs(run_dir=trainer.run_dir, weather="run")
 
 
 def test_missing_data_folder_is_a_clear_error(tmp_path):

@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 import threading
 import time
+from datetime import timedelta
 
 import numpy as np
 import pytest
@@ -16,7 +17,15 @@ from metegs.gaussians.model import GaussianModel
 from metegs.viewer.camera import ViewPose, interpolate_poses, orbit_order, pose_of, render_height, start_pose
 from metegs.viewer.export import write_video
 from metegs.viewer.training import TrainingControl
-from metegs.viewer.weather import MetTimeline, ViewerWeather, WeatherValues, reference_image, sweep_rates
+from metegs.viewer.weather import (
+    CLEAR_VISIBILITY_M,
+    MetTimeline,
+    ViewerWeather,
+    WeatherValues,
+    blend_values,
+    reference_image,
+    sweep_rates,
+)
 from metegs.weather.conditions import ConditionsConfig
 
 
@@ -90,6 +99,24 @@ def test_timeline_of_the_shipped_storm():
     assert hour.values.precip_mm_h == pytest.approx(6.8, rel=0.03) and "moderate" in hour.label
     rates = [t.hour(i, 1 / 60).values.precip_mm_h for i in range(len(t))]
     assert max(rates) > 50  # the 72.5 mm/h burst is on the timeline
+
+
+def test_timeline_between_hours_blends_the_two_hours_weather():
+    t = MetTimeline(ConditionsConfig())
+    i = t.capture_index
+    a, b = t.hour(i, 1 / 60).values, t.hour(i + 1, 1 / 60).values
+    time, half = t.at(i + 0.5, 1 / 60)
+    assert time == t.times[i] + timedelta(minutes=30)
+    assert half.precip_mm_h == pytest.approx((a.precip_mm_h + b.precip_mm_h) / 2)
+    assert t.at(i, 1 / 60)[1] == a and t.at(i + 1, 1 / 60)[1] == b
+    assert t.at(-5, 1 / 60)[0] == t.times[0] and t.at(len(t) + 5, 1 / 60)[0] == t.times[-1]  # clamped
+
+
+def test_blended_visibility_is_geometric_and_clear_air_counts_as_the_sliders_top():
+    fog, clear = WeatherValues(visibility_m=200.0), WeatherValues(visibility_m=None)
+    assert blend_values(fog, WeatherValues(visibility_m=800.0), 0.5).visibility_m == pytest.approx(400.0)
+    assert blend_values(fog, clear, 0.5).visibility_m == pytest.approx((200.0 * CLEAR_VISIBILITY_M) ** 0.5)
+    assert blend_values(fog, clear, 1.0).visibility_m is None
 
 
 def test_sweep_rates_are_log_spaced():
