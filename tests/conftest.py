@@ -19,3 +19,18 @@ def _restore_flush_denormal():
     into later tests (hypothesis refuses to run when subnormal floats cannot be represented)."""
     yield
     torch.set_flush_denormal(False)
+
+
+@pytest.fixture(autouse=True)
+def _no_downloads(monkeypatch):
+    """Tests never download: weights that product code would fetch on first use (the torch hub cache) fail as they
+    do offline, with a reason; tests that need weights pass local files explicitly."""
+
+    def offline(url, *args, **kwargs):
+        raise OSError(f"tests never download ({url})")
+
+    monkeypatch.setattr(torch.hub, "load_state_dict_from_url", offline)
+    monkeypatch.setattr(torch.hub, "download_url_to_file", offline)
+    from metegs.eval import lpips
+
+    monkeypatch.setattr(lpips, "_FAILED_DOWNLOADS", {})

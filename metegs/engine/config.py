@@ -90,8 +90,9 @@ class TrainConfig(InstantiateConfig):
     """Save test-view renders as PNG at the end."""
     lpips_net: Literal["alex", "vgg"] = "alex"
     """Backbone of the LPIPS metric (weights from the torch hub cache or METEGS_LPIPS_BACKBONE)."""
-    lpips_download: bool = False
-    """Allow downloading the LPIPS backbone weights into the torch hub cache when missing."""
+    lpips_download: bool = True
+    """Download the LPIPS backbone weights into the torch hub cache on first use, as torchvision does (off: LPIPS is
+    null with the reason unless the weights are already there)."""
     progress: bool = True
     """Show a live progress bar."""
     viewer: bool = False

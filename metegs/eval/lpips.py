@@ -17,12 +17,14 @@ Weights come in two parts, neither of which is ever replaced by a substitute:
   torchvision file (full model, keys ``features.*``/``classifier.*``, or features only) loads directly.
   Looked up, in order: the ``backbone_path`` argument, the ``METEGS_LPIPS_BACKBONE`` env var (a file, or a
   folder holding the torchvision file name), then ``torch.hub.get_dir()/checkpoints/<file>``
-  (``alexnet-owt-7be5be79.pth`` / ``vgg16-397923af.pth``). Only with ``allow_download=True`` is the file
-  fetched with ``torch.hub.load_state_dict_from_url`` (into that same cache).
+  (``alexnet-owt-7be5be79.pth`` / ``vgg16-397923af.pth``). Found nowhere, it is downloaded on first use
+  into that same cache with ``torch.hub.load_state_dict_from_url``, as torchvision does (unless
+  ``allow_download=False``); a download that fails (offline) is tried once per process and gives the reason.
 - **Linear heads**: the official ``lpips`` files ``<net>.pth`` (keys ``lin{0..4}.model.1.weight``, shapes
   ``[1, C_l, 1, 1]``). Looked up, in order: the ``heads_dir`` argument, the ``METEGS_LPIPS_HEADS`` env var,
-  then the shared folder ``<repo>/../shared/data/weights/lpips-linear``. Each may be the ``.pth`` file
-  itself or a folder holding ``<net>.pth``, ``v0.1/<net>.pth`` or ``weights/v0.1/<net>.pth``.
+  then the copy that the ``torchmetrics`` package (a dependency) ships, byte for byte the ``lpips`` package's
+  v0.1 files (`packaged_heads_dir`). Each may be the ``.pth`` file itself or a folder holding ``<net>.pth``,
+  ``v0.1/<net>.pth`` or ``weights/v0.1/<net>.pth``.
 
 An explicitly given path (argument or env var) that does not hold the file is an error; it never falls
 back silently to another location. Missing weights raise `WeightsUnavailable`; `try_load_lpips` turns that
@@ -31,6 +33,7 @@ into ``(None, reason)`` so an evaluator can report LPIPS as null with the reason
 
 from __future__ import annotations
 
+import importlib.util
 import os
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -39,7 +42,6 @@ from pathlib import Path
 import torch
 from torch import nn
 
-import metegs
 from metegs.errors import MetegsError
 
 __all__ = [
@@ -48,7 +50,7 @@ __all__ = [
     "LPIPS",
     "WeightsUnavailable",
     "alexnet_features",
-    "default_heads_dir",
+    "packaged_heads_dir",
     "load_lpips",
     "lpips",
     "resolve_backbone_file",
@@ -269,16 +271,19 @@ class LPIPS(nn.Module):
 # -------------------------------------------------------------------------------------------- resolution
 
 
-def default_heads_dir() -> Path:
-    """The shared heads folder ``<repo>/../shared/data/weights/lpips-linear`` (may not exist)."""
-    return Path(metegs.__file__).resolve().parents[2] / "shared" / "data" / "weights" / "lpips-linear"
+def packaged_heads_dir() -> Path | None:
+    """The official LPIPS v0.1 heads shipped in the installed ``torchmetrics`` package
+    (``torchmetrics/functional/image/lpips_models``), found without importing it; None when not installed."""
+    spec = importlib.util.find_spec("torchmetrics")
+    if spec is None or not spec.submodule_search_locations:
+        return None
+    return Path(next(iter(spec.submodule_search_locations))) / "functional" / "image" / "lpips_models"
 
 
 def _how_to_provide_backbone(spec: _NetSpec) -> str:
     cache = Path(torch.hub.get_dir()) / "checkpoints" / spec.filename
     return (f"provide the torchvision checkpoint {spec.filename} ({spec.url}) by placing it at {cache}, "
-            f"passing backbone_path=..., or setting {BACKBONE_ENV}=/path/to/{spec.filename}; "
-            f"or allow downloading (allow_download=True)")
+            f"passing backbone_path=..., or setting {BACKBONE_ENV}=/path/to/{spec.filename}")
 
 
 def _file_in(path: Path, names: list[str]) -> Path | None:
@@ -319,7 +324,7 @@ def resolve_backbone_file(net: str = "alex", backbone_path: str | Path | None = 
 def resolve_heads_file(net: str = "alex", heads_dir: str | Path | None = None, version: str = "0.1") -> Path:
     """Find the official LPIPS linear-heads file ``<net>.pth``.
 
-    Order: ``heads_dir``, ``$METEGS_LPIPS_HEADS``, `default_heads_dir`. Each may be the file itself or a
+    Order: ``heads_dir``, ``$METEGS_LPIPS_HEADS``, `packaged_heads_dir`. Each may be the file itself or a
     folder holding ``<net>.pth``, ``v<version>/<net>.pth`` or ``weights/v<version>/<net>.pth``.
 
     Raises:
@@ -335,7 +340,10 @@ def resolve_heads_file(net: str = "alex", heads_dir: str | Path | None = None, v
             if found is None:
                 raise WeightsUnavailable(net, "heads", f"{source}={given} holds none of {names}; {how}")
             return found
-    default = default_heads_dir()
+    default = packaged_heads_dir()
+    if default is None:
+        raise WeightsUnavailable(net, "heads", f"the torchmetrics package is not installed (pip install torchmetrics); "
+                                 f"or {how}")
     found = _file_in(default, names)
     if found is None:
         raise WeightsUnavailable(net, "heads", f"none of {names} under {default}; {how}")
@@ -364,20 +372,26 @@ def _backbone_state(state: Mapping[str, torch.Tensor]) -> dict[str, torch.Tensor
     return dict(state)
 
 
+_FAILED_DOWNLOADS: dict[str, str] = {}
+"""Why each URL could not be downloaded in this process: it is not tried again (one message, no retries)."""
+
+
 def _download_backbone(spec: _NetSpec, net: str) -> Mapping[str, torch.Tensor]:
-    try:
-        return torch.hub.load_state_dict_from_url(spec.url, map_location="cpu", progress=False, check_hash=True,
-                                                  weights_only=True)
-    except Exception as e:  # offline (URLError), hash mismatch, disk full...
-        raise WeightsUnavailable(net, "backbone", f"download of {spec.url} failed ({type(e).__name__}: {e}); "
-                                 f"{_how_to_provide_backbone(spec)}") from e
+    if spec.url not in _FAILED_DOWNLOADS:
+        try:
+            return torch.hub.load_state_dict_from_url(spec.url, map_location="cpu", progress=True, check_hash=True,
+                                                      weights_only=True)
+        except Exception as e:  # offline (URLError), hash mismatch, disk full...
+            _FAILED_DOWNLOADS[spec.url] = f"{type(e).__name__}: {e}"
+    raise WeightsUnavailable(net, "backbone", f"{spec.filename} is not in the torch hub cache and its download from "
+                             f"{spec.url} failed ({_FAILED_DOWNLOADS[spec.url]}); {_how_to_provide_backbone(spec)}")
 
 
 def load_lpips(
     net: str = "alex",
     backbone_path: str | Path | None = None,
     heads_dir: str | Path | None = None,
-    allow_download: bool = False,
+    allow_download: bool = True,
     device: str | torch.device | None = None,
 ) -> LPIPS:
     """Build the LPIPS-``net`` metric with real weights (see module docstring for the lookup order).
@@ -386,7 +400,7 @@ def load_lpips(
         net: ``"alex"`` (default, as in the 3DGS papers' tables) or ``"vgg"``.
         backbone_path: torchvision checkpoint file, or a folder holding it.
         heads_dir: official heads file ``<net>.pth`` or a folder holding it.
-        allow_download: when the backbone is found nowhere, fetch it into the torch hub cache.
+        allow_download: when the backbone is found nowhere, fetch it into the torch hub cache (default).
         device: where to put the model (default CPU).
 
     Raises:
@@ -419,7 +433,7 @@ def try_load_lpips(
     net: str = "alex",
     backbone_path: str | Path | None = None,
     heads_dir: str | Path | None = None,
-    allow_download: bool = False,
+    allow_download: bool = True,
     device: str | torch.device | None = None,
 ) -> tuple[LPIPS | None, str | None]:
     """`load_lpips`, but returns ``(model, None)`` or ``(None, reason)`` instead of raising.
@@ -441,7 +455,7 @@ def lpips(
     net: str = "alex",
     backbone_path: str | Path | None = None,
     heads_dir: str | Path | None = None,
-    allow_download: bool = False,
+    allow_download: bool = True,
 ) -> torch.Tensor:
     """Mean LPIPS between channels-last images ``[..., H, W, 3]`` in [0, 1] (scalar tensor).
 

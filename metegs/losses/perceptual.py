@@ -25,10 +25,10 @@ Where the weights are looked for (`resolve_weights`), in order:
 3. ``backbone`` ``squeezenet`` only (the stand-in is never picked on its own: on the default bench, synthetic
    scene in light rain, 1000 steps, it cost 0.003 SSIM and 0.3 dB at the paper's weight 0.05, where the term
    is meant for VGG16): ``squeezenet1.1*.mat`` in ``$XDG_CACHE_HOME/metegs/weights``
-   (default ``~/.cache/metegs/weights``) and in ``torch.hub.get_dir()/checkpoints``, then, in a development
-   checkout only, any ``*.mat`` in ``<repo>/../shared/data/weights/squeezenet1.1-caffe``.
-4. ``download=True`` and ``backbone`` ``auto`` or ``vgg16``: the torchvision VGG16 file is downloaded into
-   the torch hub cache.
+   (default ``~/.cache/metegs/weights``) and in ``torch.hub.get_dir()/checkpoints``.
+4. ``backbone`` ``auto`` or ``vgg16`` (unless ``download=False``): the torchvision VGG16 file is downloaded on
+   first use into the torch hub cache, as torchvision does; a failed download (offline) is tried once per
+   process (shared with LPIPS-vgg, `metegs.eval.lpips`) and gives the reason.
 
 Nothing found -> `PerceptualWeightsUnavailable` (`try_load_perceptual` returns ``(None, reason)``, reason
 naming every place looked at and how to provide weights). A file that is found but cannot be read or does
@@ -48,10 +48,16 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-import metegs
 from metegs.config import InstantiateConfig, user_cache
 from metegs.errors import ConfigError, DataError
-from metegs.eval.lpips import _NETS, _VGG16_CFG, WeightsUnavailable, _backbone_state, vgg16_features
+from metegs.eval.lpips import (
+    _NETS,
+    _VGG16_CFG,
+    WeightsUnavailable,
+    _backbone_state,
+    _download_backbone,
+    vgg16_features,
+)
 from metegs.losses.squeezenet import (
     SQUEEZENET_LAYERS,
     SqueezeNetFeatures,
@@ -122,8 +128,9 @@ class PerceptualLossConfig(InstantiateConfig):
     weights_path: Path | None = None
     """Explicit weights file (VGG16 torchvision .pth, or SqueezeNet 1.1 .mat) or a folder holding one; also
     taken from $METEGS_PERCEPTUAL_WEIGHTS."""
-    download: bool = False
-    """Allow downloading the torchvision VGG16 ImageNet weights into the torch hub cache when missing."""
+    download: bool = True
+    """Download the torchvision VGG16 ImageNet weights into the torch hub cache on first use, as torchvision does
+    (off: the loss is switched off, with the reason, unless the weights are already there)."""
     layers: tuple[str, ...] | None = None
     """Feature layers; None: relu1_2, relu2_2, relu3_3, relu4_3 (VGG16) or conv1, fire3, fire5, fire9
     (SqueezeNet 1.1)."""
@@ -132,11 +139,6 @@ class PerceptualLossConfig(InstantiateConfig):
 
 
 # ----------------------------------------------------------------------------------------------- weights
-
-
-def shared_squeezenet_dir() -> Path:
-    """``<repo>/../shared/data/weights/squeezenet1.1-caffe`` of a development checkout (may not exist)."""
-    return Path(metegs.__file__).resolve().parents[2] / "shared" / "data" / "weights" / "squeezenet1.1-caffe"
 
 
 def user_weights_dir() -> Path:
@@ -172,9 +174,10 @@ def _how_to_provide(backbone: str = "auto") -> str:
         "auto": "a VGG16 torchvision .pth (or a SqueezeNet 1.1 .mat as weights_path)",
     }[backbone]
     places = {
-        "vgg16": f"{vgg}, or set download=True",
+        "vgg16": f"{vgg}, or leave download on (the default) where the network can reach it",
         "squeezenet": sqz,
-        "auto": f"{vgg}, or set download=True (--perceptual.backbone squeezenet: {sqz})",
+        "auto": f"{vgg}, or leave download on (the default) where the network can reach it (--perceptual.backbone "
+        f"squeezenet: {sqz})",
     }[backbone]
     return f"provide {what} with weights_path=... or {PERCEPTUAL_ENV}=..., {places}"
 
@@ -224,25 +227,17 @@ def resolve_weights(config: PerceptualLossConfig) -> tuple[str, Path | None]:
             found = _first(d, SQUEEZENET_GLOBS)
             if found is not None:
                 return "squeezenet", found
-        shared = shared_squeezenet_dir()
-        found = _first(shared, (*SQUEEZENET_GLOBS, "*.mat"))
-        if found is not None:
-            return "squeezenet", found
-        looked.append(f"SqueezeNet 1.1 squeezenet1.1*.mat in {', '.join(map(str, dirs))} and *.mat in {shared}")
+        looked.append(f"SqueezeNet 1.1 squeezenet1.1*.mat in {', '.join(map(str, dirs))}")
     raise PerceptualWeightsUnavailable(f"no weights found (looked for {'; '.join(looked)}); {_how_to_provide(want)}")
 
 
-def _load_vgg16(path: Path | None) -> tuple[nn.Sequential, str]:
+def _load_vgg16(path: Path | None, backbone: str = "vgg16") -> tuple[nn.Sequential, str]:
     spec = _NETS["vgg"]
     if path is None:
         try:
-            state = torch.hub.load_state_dict_from_url(
-                spec.url, map_location="cpu", progress=False, check_hash=True, weights_only=True
-            )
-        except Exception as e:  # offline, hash mismatch, disk full
-            raise PerceptualWeightsUnavailable(
-                f"download of {spec.url} failed ({type(e).__name__}: {e}); {_how_to_provide('vgg16')}"
-            ) from e
+            state = _download_backbone(spec, "vgg")
+        except WeightsUnavailable as e:  # offline, hash mismatch, disk full
+            raise PerceptualWeightsUnavailable(f"{e.reason.split('; ')[0]}; {_how_to_provide(backbone)}") from e
         where = f"{spec.url} (cached in {_vgg_cache_file().parent})"
     else:
         try:
@@ -324,7 +319,7 @@ class PerceptualLoss(nn.Module):
         kind, path = resolve_weights(config)
         features = None
         if kind == "vgg16" and path is None:  # only a download can provide VGG16
-            features, source = _load_vgg16(None)
+            features, source = _load_vgg16(None, config.backbone)
         if kind == "vgg16":
             self.backbone_name = "vgg16"
             layers = self._check_layers(config.layers, tuple(VGG16_LAYERS))

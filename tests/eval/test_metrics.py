@@ -44,8 +44,15 @@ def test_psnr_identical_is_inf_and_shape_mismatch_raises():
 
 
 def _skimage_ssim(a: torch.Tensor, b: torch.Tensor) -> float:
-    return structural_similarity(a.double().numpy(), b.double().numpy(), channel_axis=-1, data_range=1.0,
-                                 gaussian_weights=True, sigma=1.5, use_sample_covariance=False)
+    return structural_similarity(
+        a.double().numpy(),
+        b.double().numpy(),
+        channel_axis=-1,
+        data_range=1.0,
+        gaussian_weights=True,
+        sigma=1.5,
+        use_sample_covariance=False,
+    )
 
 
 def _structured(h: int, w: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -122,7 +129,7 @@ def test_ssim_errors():
 
 # ------------------------------------------------------------------------------------------------ LPIPS
 
-SHARED_HEADS = lp.default_heads_dir()
+SHARED_HEADS = Path(__file__).resolve().parents[3] / "shared" / "data" / "weights" / "lpips-linear" / "weights" / "v0.1"
 
 
 def _write_fake_weights(tmp_path: Path, net: str) -> tuple[Path, Path]:
@@ -243,19 +250,27 @@ def test_lpips_mismatched_checkpoint_is_reported(tmp_path, empty_hub):
     assert model is None and "cannot read" in reason
 
 
-def test_lpips_download_disabled_by_default(tmp_path, empty_hub, monkeypatch):
-    called = []
-    monkeypatch.setattr(torch.hub, "load_state_dict_from_url", lambda *a, **k: called.append(a) or {})
-    _, heads_dir = _write_fake_weights(tmp_path, "alex")
-    assert lp.try_load_lpips("alex", heads_dir=heads_dir)[0] is None
-    assert not called
+def test_lpips_backbone_downloads_on_first_use_is_tried_once_offline_and_never_when_off(
+    tmp_path, empty_hub, monkeypatch
+):
+    calls = []
 
-    def offline(*args, **kwargs):
+    def offline(url, *args, **kwargs):
+        calls.append(url)
         raise OSError("network unreachable")
 
     monkeypatch.setattr(torch.hub, "load_state_dict_from_url", offline)
-    model, reason = lp.try_load_lpips("alex", heads_dir=heads_dir, allow_download=True)
-    assert model is None and "download" in reason and "network unreachable" in reason
+    backbone, heads_dir = _write_fake_weights(tmp_path, "alex")
+    assert lp.try_load_lpips("alex", heads_dir=heads_dir, allow_download=False)[0] is None and not calls
+    model, reason = lp.try_load_lpips("alex", heads_dir=heads_dir)
+    assert model is None and calls == [lp._NETS["alex"].url]
+    assert "download" in reason and "network unreachable" in reason and str(empty_hub / "checkpoints") in reason
+    assert lp.try_load_lpips("alex", heads_dir=heads_dir)[1] == reason and len(calls) == 1  # one try per process
+    monkeypatch.setattr(lp, "_FAILED_DOWNLOADS", {})  # a new process, online: torchvision's own file arrives
+    state = torch.load(backbone, weights_only=True)
+    monkeypatch.setattr(torch.hub, "load_state_dict_from_url", lambda url, **kwargs: calls.append(url) or state)
+    model, reason = lp.try_load_lpips("alex", heads_dir=heads_dir)
+    assert reason is None and isinstance(model, lp.LPIPS) and len(calls) == 2
 
 
 def test_bad_net_name():
@@ -263,14 +278,16 @@ def test_bad_net_name():
         lp.load_lpips("squeezenet")
 
 
-@pytest.mark.data
 @pytest.mark.parametrize("net", ["alex", "vgg"])
-def test_real_shared_heads_load(tmp_path, empty_hub, net):
-    if not SHARED_HEADS.is_dir():
-        pytest.skip(f"{SHARED_HEADS} absent")
+def test_the_packaged_official_heads_load_by_default(tmp_path, empty_hub, net):
+    if lp.packaged_heads_dir() is None:
+        pytest.skip("torchmetrics (a dependency) is not installed")
     heads_file = lp.resolve_heads_file(net)
-    assert heads_file.parent.name == "v0.1" and heads_file.name == f"{net}.pth"
+    assert heads_file.parent == lp.packaged_heads_dir() and heads_file.name == f"{net}.pth"
     heads = torch.load(heads_file, map_location="cpu", weights_only=True)
+    if (SHARED_HEADS / f"{net}.pth").is_file():  # the lpips package's own files, where a checkout has them
+        official = torch.load(SHARED_HEADS / f"{net}.pth", map_location="cpu", weights_only=True)
+        assert sorted(official) == sorted(heads) and all(torch.equal(official[k], heads[k]) for k in official)
     model = lp.LPIPS(net)
     model.heads.load_state_dict(heads)  # official key names and shapes
     assert all((h >= 0).all() for h in heads.values())  # LPIPS v0.1 heads are non-negative

@@ -48,12 +48,11 @@ def write_random_mat(path: Path, seed: int = 0, break_layer: str | None = None) 
 
 @pytest.fixture
 def no_weights(tmp_path, monkeypatch):
-    """An environment with no weights anywhere: empty hub and user cache, no env var, no shared folder."""
+    """An environment with no weights anywhere: empty hub and user cache, no env var (and no network: conftest)."""
     old = torch.hub.get_dir()
     torch.hub.set_dir(str(tmp_path / "hub"))
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
     monkeypatch.delenv(perc.PERCEPTUAL_ENV, raising=False)
-    monkeypatch.setattr(perc, "shared_squeezenet_dir", lambda: tmp_path / "no-shared")
     yield tmp_path
     torch.hub.set_dir(old)
 
@@ -132,10 +131,13 @@ def test_more_blur_gives_a_larger_loss_with_the_shared_weights():
 
 
 @pytest.mark.data
-def test_shared_mat_is_found_automatically(no_weights, monkeypatch):
+def test_the_real_squeezenet_mat_loads_and_auto_never_picks_it_by_itself(no_weights, monkeypatch):
     mat = _shared_mat()
-    monkeypatch.setattr(perc, "shared_squeezenet_dir", lambda: mat.parent)
+    cache = no_weights / "cache" / "metegs" / "weights"
+    cache.mkdir(parents=True)
+    (cache / "squeezenet1.1-caffe.mat").symlink_to(mat)
     assert try_load_perceptual(PerceptualLossConfig())[0] is None  # auto never picks the stand-in by itself
+    mat = cache / "squeezenet1.1-caffe.mat"
     loss, reason = try_load_perceptual(PerceptualLossConfig(backbone="squeezenet"))
     assert reason is None and loss.backbone_name == "squeezenet1.1" and loss.source == str(mat)
     feats = loss.extractor.features(SqueezeNetFeatures.preprocess(torch.rand(1, 3, 64, 64)))
@@ -156,15 +158,16 @@ def test_user_cache_and_env_var_are_searched(no_weights, monkeypatch):
 
 def test_missing_weights_give_a_reason_naming_where_it_looked(no_weights):
     loss, reason = try_load_perceptual(PerceptualLossConfig(backbone="squeezenet"))
-    assert loss is None and "squeezenet1.1" in reason and str(no_weights / "no-shared") in reason
+    assert loss is None and "squeezenet1.1" in reason and "shared" not in reason  # only the package and caches
     assert str(no_weights / "cache" / "metegs" / "weights") in reason
     loss, reason = try_load_perceptual(PerceptualLossConfig())
     assert loss is None
     assert str(no_weights / "hub" / "checkpoints") in reason  # the VGG16 hub cache
     assert "vgg16-397923af.pth" in reason and "--perceptual.backbone squeezenet" in reason
-    assert "weights_path" in reason and perc.PERCEPTUAL_ENV in reason and "download=True" in reason
-    loss, reason = try_load_perceptual(PerceptualLossConfig(backbone="vgg16"))
-    assert loss is None and "SqueezeNet" not in reason
+    assert "weights_path" in reason and perc.PERCEPTUAL_ENV in reason and "leave download on" in reason
+    assert "tests never download" in reason  # it tried, as torchvision would, and says why it failed
+    loss, reason = try_load_perceptual(PerceptualLossConfig(backbone="vgg16", download=False))
+    assert loss is None and "SqueezeNet" not in reason and "tests never download" not in reason
 
 
 def test_explicit_missing_path_does_not_fall_back(no_weights, monkeypatch):
@@ -213,7 +216,7 @@ def test_vgg16_from_the_hub_cache_is_preferred(no_weights):
     assert try_load_perceptual(PerceptualLossConfig(backbone="squeezenet"))[0].backbone_name == "squeezenet1.1"
 
 
-def test_download_only_when_allowed(no_weights, monkeypatch):
+def test_vgg16_downloads_on_first_use_once_per_process_and_never_when_off(no_weights, monkeypatch):
     calls = []
 
     def offline(url, **kwargs):
@@ -221,18 +224,19 @@ def test_download_only_when_allowed(no_weights, monkeypatch):
         raise OSError("network unreachable")
 
     monkeypatch.setattr(torch.hub, "load_state_dict_from_url", offline)
-    assert try_load_perceptual(PerceptualLossConfig(backbone="vgg16"))[0] is None and not calls
-    loss, reason = try_load_perceptual(PerceptualLossConfig(backbone="vgg16", download=True))
+    assert try_load_perceptual(PerceptualLossConfig(backbone="vgg16", download=False))[0] is None and not calls
+    loss, reason = try_load_perceptual(PerceptualLossConfig(backbone="vgg16"))
     assert loss is None and calls == [lp._NETS["vgg"].url]
     assert "download" in reason and "network unreachable" in reason
     cache = no_weights / "cache" / "metegs" / "weights"
     cache.mkdir(parents=True)
     write_random_mat(cache / "squeezenet1.1.mat")
-    loss, reason = try_load_perceptual(PerceptualLossConfig(download=True))  # auto: no SqueezeNet fallback
-    assert loss is None and "network unreachable" in reason and len(calls) == 2
+    loss, reason = try_load_perceptual(PerceptualLossConfig())  # auto: no SqueezeNet fallback, and no second try
+    assert loss is None and "network unreachable" in reason and len(calls) == 1
+    monkeypatch.setattr(lp, "_FAILED_DOWNLOADS", {})  # a new process, online
     state = {f"features.{k}": v for k, v in lp.vgg16_features().state_dict().items()}
     monkeypatch.setattr(torch.hub, "load_state_dict_from_url", lambda url, **kwargs: calls.append(url) or state)
-    loss, reason = try_load_perceptual(PerceptualLossConfig(download=True))
+    loss, reason = try_load_perceptual(PerceptualLossConfig())
     assert reason is None and loss.backbone_name == "vgg16" and loss.source.startswith(lp._NETS["vgg"].url)
 
 
