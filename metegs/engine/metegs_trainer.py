@@ -157,6 +157,12 @@ class MeteGSTrainer(Trainer):
             why = f"--{name}.record-prior {mode}" + (f" (β near {beta})" if fog.use_record_prior else "")
         weight = f" (weight {fog.config.record_prior_weight:g})" if fog.use_record_prior else ""
         self.decide(f"{name} prior", f"{'on' if fog.use_record_prior else 'off'}{weight}: {why}")
+        if fog.use_record_prior:
+            self.decide(f"{name} layers", "off: where the photos cannot measure β they cannot tell how it varies")
+        elif fog.learn_layers():
+            self.decide(f"{name} layers", "on: β learns how it changes with height")
+        else:
+            self.decide(f"{name} layers", f"off: --{name}.no-layered")
 
     def _build_gtn(self):
         from metegs.models.gtn import GaussianTransformationNetwork

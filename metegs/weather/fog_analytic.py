@@ -9,6 +9,13 @@ distance (forward-facing captures), a hazy scene under less fog fits the photos 
 clean scene, and a free β drifts down while the scene takes the haze in: there (``record_prior`` auto, decided by
 the trainer) a prior holds ln β near θ's; where the distances differ across views the photos measure β, and it
 stays free.
+
+Where the photos measure the medium (the prior off), the fog also learns how it thins with height above the
+ground, starting uniform: β(x) = β·exp(−k·h(x)), h the height in metres over the cameras' mean and k learnable, so
+the optical depth of a ray from height h_c, rising u per metre, to distance d is
+β·d·exp(−k·h_c)·(1 − e^{−k·u·d})/(k·u·d), exact. Without it, where the true fog is thinner than a uniform one the
+scene can only darken itself by moving Gaussians in front of the fog, next to the camera: floaters in the clean
+render.
 """
 
 from __future__ import annotations
@@ -57,6 +64,8 @@ class FogAnalyticConfig(WeatherModelConfig):
     the scene from about the same distance, as in forward-facing captures), off where they can."""
     record_prior_weight: Annotated[float, NON_NEGATIVE] = 0.1
     """Weight of that prior, record_prior_weight · mean((ln β − ln β_θ)²)."""
+    layered: bool = True
+    """Where the photos measure β (the record prior off), also learn how β changes with height."""
 
 
 class FogAnalytic(WeatherModel):
@@ -77,7 +86,25 @@ class FogAnalytic(WeatherModel):
         self.use_record_prior = config.record_prior == "on"
         """Whether `prior` holds β near θ's (the trainer decides ``auto`` from the views' distances)."""
         self.airlight_logit = torch.nn.Parameter(torch.logit(a), requires_grad=config.learnable)
+        self.height_rate = torch.nn.Parameter(torch.zeros(()), requires_grad=False)
+        """100·k: ln β falls by this much per 100 m of height (0: uniform; learned by `learn_layers`; per 100 m so
+        that an optimiser's steps of ~0.01 move it by a small fraction of a realistic 0.01-0.1 per metre)."""
+        up = scene.up.float() / scene.up.float().norm().clamp_min(1e-12)
+        self.register_buffer("up", up, persistent=False)
+        self.register_buffer("reference_height", (scene.cameras.centers.float() @ up).mean(), persistent=False)
         self._rays: dict[int, torch.Tensor] = {}
+
+    def learn_layers(self) -> bool:
+        """Let β change with height from now on, when ``layered`` and ``learnable`` allow it -> whether it does."""
+        if not (self.config.layered and self.config.learnable):
+            return False
+        self.height_rate.requires_grad_(True)
+        return True
+
+    @property
+    def layered(self) -> bool:
+        """Whether β may change with height (learned, or loaded non-zero)."""
+        return self.height_rate.requires_grad or bool(self.height_rate.detach() != 0)
 
     @property
     def active(self) -> bool:
@@ -106,7 +133,35 @@ class FogAnalytic(WeatherModel):
         rays = self._rays[view].to(rgb)
         distance = out.depth * rays * self.scene.metres_per_unit
         distance = torch.where(out.alpha > 1e-6, distance, torch.zeros_like(distance))
+        if not self.layered:
+            return fog_composite(color, out.alpha, distance, self.beta_rgb.to(rgb), self.airlight.to(rgb))
+        distance = distance * self.height_factor(self.rise(view, rays), distance, view)
         return fog_composite(color, out.alpha, distance, self.beta_rgb.to(rgb), self.airlight.to(rgb))
+
+    def rise(self, view: int, rays: torch.Tensor) -> torch.Tensor:
+        """[H, W] height gained per metre along each pixel's ray of view ``view``, from its ray lengths per unit of
+        camera z ``rays`` [H, W] (`ray_lengths`): the up vector in camera axes dotted with the unit ray."""
+        cam = self.scene.cameras[view]
+        h, w = rays.shape
+        up = cam.camera_to_worlds[0, :3, :3].T.to(rays) @ self.up.to(rays)  # up in camera axes
+        fx, fy, cx, cy = (float(v[0]) for v in (cam.fx, cam.fy, cam.cx, cam.cy))
+        a = (torch.arange(w, device=rays.device, dtype=rays.dtype) + 0.5 - cx) / fx
+        b = (torch.arange(h, device=rays.device, dtype=rays.dtype) + 0.5 - cy) / fy
+        return (up[0] * a[None, :] + up[1] * b[:, None] + up[2]) / rays
+
+    def height_factor(self, rise: torch.Tensor, distance_m: torch.Tensor, view: int) -> torch.Tensor:
+        """[H, W] optical depth of each ray under the height profile over that of a uniform β at the reference
+        height: exp(−k·h_c)·(1 − e^{−x})/x with x = k·u·d (u ``rise`` [H, W], metres of height per metre of ray; d
+        ``distance_m`` [H, W]; h_c the camera's height over the reference, metres)."""
+        k = self.height_rate.to(distance_m) / 100.0
+        camera_height = (
+            self.scene.cameras.centers[view].to(distance_m) @ self.up.to(distance_m)
+        ) - self.reference_height
+        x = k * rise * distance_m
+        small = x.abs() < 1e-4
+        safe = torch.where(small, torch.ones_like(x), x)
+        mean_along = torch.where(small, 1.0 - x / 2.0, -torch.expm1(-safe) / safe)
+        return torch.exp((-k * camera_height * self.scene.metres_per_unit).clamp(-20.0, 20.0)) * mean_along
 
     def prior(self, view: int) -> torch.Tensor | None:
         """record_prior_weight · mean((ln β − ln β_θ)²), or None when β is fixed or the prior is off."""
@@ -115,13 +170,24 @@ class FogAnalytic(WeatherModel):
         gap = self.log_beta - self.record_log_beta
         return self.config.record_prior_weight * (gap**2).mean()
 
+    def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
+        """As torch's; a checkpoint saved before β could change with height loads as a uniform medium."""
+        state = dict(state_dict)
+        state.setdefault("height_rate", torch.zeros_like(self.height_rate))
+        return super().load_state_dict(state, strict, assign)
+
     def summary(self) -> dict:
-        """Learned β (1/m, RGB) and airlight next to θ's β."""
-        return {
+        """Learned β (1/m, RGB at the cameras' mean height) and airlight next to θ's β; with layers, β's scale
+        height (m; negative: denser upwards)."""
+        out = {
             "beta_per_m": [round(float(b), 6) for b in self.beta_rgb.detach()],
             "record_beta_per_m": [round(float(b), 6) for b in self.record_log_beta.exp()],
             "airlight": [round(float(a), 4) for a in self.airlight.detach()],
         }
+        if self.layered:
+            k = float(self.height_rate.detach()) / 100.0
+            out["scale_height_m"] = None if k == 0 else round(1.0 / k, 1)
+        return out
 
     def transmittance(self, points: torch.Tensor, view: int) -> torch.Tensor:
         """[N] exp(−β·d) of world points [N, 3] seen from view ``view``, averaged over R, G, B."""

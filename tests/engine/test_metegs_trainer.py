@@ -101,6 +101,10 @@ def test_fog_record_prior_is_on_where_the_views_see_the_scene_from_one_distance(
     assert around.decisions["fog-analytic prior"].startswith("off: the views see a scene point from distances")
     fog = next(m for m in around.weather_models if m.name == "fog-analytic")
     assert not fog.use_record_prior and fog.prior(0) is None
+    assert around.decisions["fog-analytic layers"].startswith("on:")  # and how it thins with height
+    assert fog.height_rate.requires_grad
+    learned = {id(p) for o in around.method_optimizers.values() for g in o.param_groups for p in g["params"]}
+    assert id(fog.height_rate) in learned
     c2w = around.scene.cameras.camera_to_worlds.clone()
     c2w[:, :3, :3] = c2w[0, :3, :3]  # every view turned like the first, side by side along its x axis
     c2w[:, :3, 3] = c2w[0, :3, 3] + torch.linspace(-0.5, 0.5, len(c2w))[:, None] * c2w[0, :3, 0]
@@ -109,6 +113,7 @@ def test_fog_record_prior_is_on_where_the_views_see_the_scene_from_one_distance(
     assert facing.decisions["fog-analytic prior"].startswith("on (weight 0.1)")
     fog = next(m for m in facing.weather_models if m.name == "fog-analytic")
     assert fog.use_record_prior and float(fog.prior(0).detach()) == 0.0
+    assert facing.decisions["fog-analytic layers"].startswith("off:") and not fog.layered
 
 
 def test_clean_views_look_into_the_airlight_where_the_scene_is_transparent(trained):

@@ -54,21 +54,26 @@ def black_wall(depth: float, n_side: int = 40) -> GaussianSet:
     )
 
 
+def flat_view(depth: float) -> RenderOutput:
+    """An opaque black render at camera depth ``depth`` everywhere."""
+    return RenderOutput(
+        rgb=torch.zeros(H, W, 3),
+        alpha=torch.ones(H, W),
+        depth=torch.full((H, W), depth),
+        radii=torch.zeros(0),
+        means2d=torch.zeros(0, 2),
+        num_intersections=0,
+        width=W,
+        height=H,
+    )
+
+
 def test_fog_analytic_transmittance_is_exp_minus_beta_d():
     theta = theta_from_values(0.0, visibility_m=300.0, fog_kind="fog", camera=spec())
     fog = FogAnalytic(FogAnalyticConfig(airlight=(1.0, 1.0, 1.0)), theta, weather_scene())
     beta = fog.beta_rgb
     for d in (20.0, 60.0, 150.0):
-        out = RenderOutput(
-            rgb=torch.zeros(H, W, 3),
-            alpha=torch.ones(H, W),
-            depth=torch.full((H, W), d),
-            radii=torch.zeros(0),
-            means2d=torch.zeros(0, 2),
-            num_intersections=0,
-            width=W,
-            height=H,
-        )
+        out = flat_view(d)
         rgb = fog.apply(out.rgb, out, 0, RenderSettings())
         t = 1.0 - rgb[H // 2, W // 2]  # the centre ray has length d
         expected = torch.exp(-beta * d)
@@ -181,6 +186,49 @@ def test_fog_record_prior_pulls_beta_back_to_theta_and_is_off_unless_asked():
     assert FogAnalytic(FogAnalyticConfig(), theta, weather_scene()).prior(0) is None  # auto: the trainer decides
     fixed = FogAnalytic(FogAnalyticConfig(record_prior="on", learnable=False), theta, weather_scene())
     assert fixed.prior(0) is None
+
+
+def test_height_fog_optical_depth_matches_the_integral_along_each_ray():
+    theta = theta_from_values(0.0, visibility_m=300.0, fog_kind="fog", camera=spec())
+    fog = FogAnalytic(FogAnalyticConfig(airlight=(1.0, 1.0, 1.0)), theta, weather_scene())
+    d = 150.0
+    uniform = fog.apply(torch.zeros(H, W, 3), flat_view(d), 0, RenderSettings()).detach()
+    assert fog.learn_layers() and fog.layered
+    assert torch.equal(fog.apply(torch.zeros(H, W, 3), flat_view(d), 0, RenderSettings()).detach(), uniform)
+    k = 0.02  # ln β falls 0.02 per metre of height (scale height 50 m)
+    with torch.no_grad():
+        fog.height_rate.fill_(100 * k)
+    rgb = fog.apply(torch.zeros(H, W, 3), flat_view(d), 0, RenderSettings())
+    beta, a = fog.beta_rgb.detach(), fog.airlight.detach()
+    for row, col in ((0, 0), (H // 2, W // 2), (H - 1, 5)):
+        ray = torch.tensor([(col + 0.5 - W / 2) / F, (row + 0.5 - H / 2) / F, 1.0], dtype=torch.float64)
+        length = d * float(ray.norm())
+        rise = float(ray[1] * -1.0 / ray.norm())  # up is -y
+        s = (torch.arange(4000, dtype=torch.float64) + 0.5) / 4000 * length
+        tau = beta.double() * float(torch.exp(-k * rise * s).mean()) * length  # the integral, numerically
+        t = 1.0 - rgb[row, col].detach().double() / a.double()
+        assert torch.allclose(t, torch.exp(-tau), rtol=1e-3), (row, col)
+    t_up, t_down = (float(1 - rgb[row, W // 2, 0].detach() / a[0]) for row in (0, H - 1))
+    assert t_up > t_down  # looking up, the fog thins: more of the scene shows
+    rgb.sum().backward()
+    assert float(fog.height_rate.grad.abs()) > 0  # the photos can move it
+    assert fog.summary()["scale_height_m"] == pytest.approx(50.0)
+
+
+def test_old_checkpoints_load_as_a_uniform_medium_and_layers_stay_off_when_asked():
+    theta = theta_from_values(0.0, visibility_m=300.0, fog_kind="fog", camera=spec())
+    fog = FogAnalytic(FogAnalyticConfig(), theta, weather_scene())
+    old = {k: v for k, v in fog.state_dict().items() if k != "height_rate"}  # saved before the layers
+    fog.learn_layers()
+    with torch.no_grad():
+        fog.height_rate.fill_(3.0)
+    fog.load_state_dict(old)
+    assert not fog.height_rate.detach() and "scale_height_m" in fog.summary()  # still learning: reported
+    fresh = FogAnalytic(FogAnalyticConfig(), theta, weather_scene())
+    fresh.load_state_dict(old)
+    assert not fresh.layered and fresh.summary().keys() == {"beta_per_m", "record_beta_per_m", "airlight"}
+    fixed = FogAnalytic(FogAnalyticConfig(layered=False), theta, weather_scene())
+    assert not fixed.learn_layers() and not fixed.height_rate.requires_grad
 
 
 def test_distance_spread_is_the_median_far_over_near_ratio_of_points_seen_twice():
