@@ -73,8 +73,18 @@ def latest_checkpoint(run_dir: Path) -> Path | None:
     return ckpts[-1] if ckpts else None
 
 
-VOLATILE_FIELDS = ("load_checkpoint", "progress", "backend", "device", "threads", "output_dir", "experiment_name")
-"""Run-config fields that may differ between a finished run and the suite without making it another run."""
+VOLATILE_FIELDS = (
+    "load_checkpoint",
+    "progress",
+    "backend",
+    "device",
+    "threads",
+    "output_dir",
+    "experiment_name",
+    "lpips_download",
+)
+"""Run-config fields that may differ between a finished run and the suite without making it another run (whether
+LPIPS may download its backbone changes no training)."""
 
 
 def config_changes(run_dir: Path, config) -> list[str]:
