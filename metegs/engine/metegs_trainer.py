@@ -183,9 +183,6 @@ class MeteGSTrainer(Trainer):
             return None
         centre = self.dataset.cameras[self.dataset.train_indices].camera_to_worlds[:, :3, 3].mean(0)
         gtn = GaussianTransformationNetwork(c.gtn, centre, self.extent).to(self.device)
-        if getattr(self.densifier, "reset_every", 0):
-            self.densifier.reset_every = 0
-            self.decide("opacity reset", "off while the GTN is active (as in Deblurring-3DGS)")
         self.decide("gtn", f"on: scale/rotation growth in [1, {c.gtn.max_factor}]")
         return gtn
 

@@ -230,3 +230,14 @@ def test_light_rain_switches_off_the_gtn_and_the_robust_mask(tmp_path):
     heavy = tiny_metegs(tmp_path / "heavy", max_steps=1).setup()  # 20 mm/h and 400 m: blur and bright streaks
     assert heavy.gtn is not None and heavy.decisions["gtn"].startswith("on")
     assert heavy.robust_from is not None and heavy.decisions["robust mask"].startswith("on")
+
+
+def test_opacity_resets_stay_on_with_the_gtn(tmp_path):
+    """Resets remove the Gaussians that fitted single photos' streaks (measured on two real captures); the GTN
+    keeps the plain 3DGS schedule."""
+    from metegs.densify.adc import AdaptiveDensityControl
+
+    trainer = tiny_metegs(tmp_path, max_steps=3000, densify=ADCConfig()).setup()
+    assert trainer.gtn is not None and "opacity reset" not in trainer.decisions
+    plain = AdaptiveDensityControl(ADCConfig(), 3000, trainer.extent, len(trainer.dataset.train_indices))
+    assert trainer.densifier.reset_every == plain.reset_every > 0
