@@ -58,12 +58,11 @@ class RenderArgs:
             raise ConfigError(f"--weather {self.weather} renders along a camera path: give --camera-path too")
 
 
-def render_camera_path(trainer, args: RenderArgs) -> Path:
-    """The clean scene along ``args.camera_path`` as a video -> the file written (see `metegs.video`)."""
+def render_camera_path(trainer, args: RenderArgs, cameras, fps: float) -> Path:
+    """The clean scene along ``cameras`` (`path_cameras`) as a video -> the file written (see `metegs.video`)."""
     from metegs.render import RenderSettings
     from metegs.video import to_uint8
 
-    cameras, fps = path_cameras(trainer, args)
     settings = RenderSettings(background=trainer.background(training=False), sh_degree=trainer.model.active_sh_degree)
     gaussians = trainer.model.activated()
     frames = []
@@ -90,14 +89,13 @@ def path_cameras(trainer, args: RenderArgs):
     return cameras.to(trainer.device), fps
 
 
-def render_weather_path(trainer, args: RenderArgs) -> Path:
-    """The scene through the weather along ``args.camera_path``, each frame captioned with its weather (and time,
-    for ``--weather record``) -> the video written. Every frame draws its own rain, as a video's frames do."""
+def render_weather_path(trainer, args: RenderArgs, cameras, fps: float) -> Path:
+    """The scene through the weather along ``cameras`` (`path_cameras`), each frame captioned with its weather (and
+    time, for ``--weather record``) -> the video written. Every frame draws its own rain, as a video's frames do."""
     from metegs.video import caption, to_uint8
     from metegs.viewer.render import Snapshot, render_frame
     from metegs.viewer.weather import run_weather
 
-    cameras, fps = path_cameras(trainer, args)
     run = run_weather(trainer)
     if run.note:
         Console(stderr=True).print(f"[yellow]warning:[/] {run.note}")
@@ -109,8 +107,8 @@ def render_weather_path(trainer, args: RenderArgs) -> Path:
     frames = []
     for i in track(range(n), description="weather along the path", console=Console(stderr=True)):
         if args.weather == "record":
-            start = run.timeline.capture_index
-            time, values = run.timeline.at(start + args.hours * i / max(n - 1, 1), run.values.exposure_s)
+            hour = run.timeline.capture_index + args.hours * i / max(n - 1, 1)
+            time, values = run.timeline.at(hour, run.values.exposure_s)
             text = f"{time:%Y-%m-%d %H:%M}Z  {values.describe(exposure=False)}"
         else:
             values, text = run.values, run.values.describe(exposure=False)
@@ -137,9 +135,10 @@ def main(args: RenderArgs) -> Path:
     trainer = load_run(args.run_dir, args.checkpoint, args.ply, args.device)
     ds = trainer.dataset
     if args.camera_path is not None:
-        path = render_camera_path(trainer, args)
+        cameras, fps = path_cameras(trainer, args)
+        path = render_camera_path(trainer, args, cameras, fps)
         if args.weather != "off":
-            render_weather_path(trainer, args)
+            render_weather_path(trainer, args, cameras, fps)
         return path
     idx = {"test": ds.test_indices, "train": ds.train_indices, "all": list(range(len(ds)))}[args.split]
     out_dir = args.output or Path(args.run_dir) / "renders" / f"{args.split}-render"

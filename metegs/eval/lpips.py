@@ -376,7 +376,9 @@ _FAILED_DOWNLOADS: dict[str, str] = {}
 """Why each URL could not be downloaded in this process: it is not tried again (one message, no retries)."""
 
 
-def _download_backbone(spec: _NetSpec, net: str) -> Mapping[str, torch.Tensor]:
+def _download_backbone(spec: _NetSpec, net: str, how: str | None = None) -> Mapping[str, torch.Tensor]:
+    """The backbone's torchvision state dict, downloaded into the torch hub cache; a failure (remembered for the
+    process) raises `WeightsUnavailable` ending with ``how`` to provide the file (default: LPIPS's own advice)."""
     if spec.url not in _FAILED_DOWNLOADS:
         try:
             return torch.hub.load_state_dict_from_url(spec.url, map_location="cpu", progress=True, check_hash=True,
@@ -384,7 +386,7 @@ def _download_backbone(spec: _NetSpec, net: str) -> Mapping[str, torch.Tensor]:
         except Exception as e:  # offline (URLError), hash mismatch, disk full...
             _FAILED_DOWNLOADS[spec.url] = f"{type(e).__name__}: {e}"
     raise WeightsUnavailable(net, "backbone", f"{spec.filename} is not in the torch hub cache and its download from "
-                             f"{spec.url} failed ({_FAILED_DOWNLOADS[spec.url]}); {_how_to_provide_backbone(spec)}")
+                             f"{spec.url} failed ({_FAILED_DOWNLOADS[spec.url]}); {how or _how_to_provide_backbone(spec)}")
 
 
 def load_lpips(

@@ -235,9 +235,9 @@ def _load_vgg16(path: Path | None, backbone: str = "vgg16") -> tuple[nn.Sequenti
     spec = _NETS["vgg"]
     if path is None:
         try:
-            state = _download_backbone(spec, "vgg")
+            state = _download_backbone(spec, "vgg", _how_to_provide(backbone))
         except WeightsUnavailable as e:  # offline, hash mismatch, disk full
-            raise PerceptualWeightsUnavailable(f"{e.reason.split('; ')[0]}; {_how_to_provide(backbone)}") from e
+            raise PerceptualWeightsUnavailable(e.reason) from e
         where = f"{spec.url} (cached in {_vgg_cache_file().parent})"
     else:
         try:
