@@ -183,6 +183,13 @@ class MeteGSTrainer(Trainer):
             return None
         centre = self.dataset.cameras[self.dataset.train_indices].camera_to_worlds[:, :3, 3].mean(0)
         gtn = GaussianTransformationNetwork(c.gtn, centre, self.extent).to(self.device)
+        if rain.intensity_class in LIGHT_OR_NONE and getattr(self.densifier, "reset_every", 0):
+            self.densifier.reset_every = 0
+            self.decide(
+                "opacity reset",
+                f"off: {rain_phrase(rain)} leaves no streaks for resets to clear, and under the fog a reset costs "
+                "Gaussians that its dimmed gradients hardly regrow",
+            )
         self.decide("gtn", f"on: scale/rotation growth in [1, {c.gtn.max_factor}]")
         return gtn
 

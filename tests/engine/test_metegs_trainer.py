@@ -232,12 +232,16 @@ def test_light_rain_switches_off_the_gtn_and_the_robust_mask(tmp_path):
     assert heavy.robust_from is not None and heavy.decisions["robust mask"].startswith("on")
 
 
-def test_opacity_resets_stay_on_with_the_gtn(tmp_path):
-    """Resets remove the Gaussians that fitted single photos' streaks (measured on two real captures); the GTN
-    keeps the plain 3DGS schedule."""
+def test_opacity_resets_stay_on_with_the_gtn_where_it_rains(tmp_path):
+    """Resets remove the Gaussians that fitted single photos' streaks (measured on two real captures): with rain
+    the GTN keeps the plain 3DGS schedule; under fog alone they only cost Gaussians, and are off."""
     from metegs.densify.adc import AdaptiveDensityControl
 
-    trainer = tiny_metegs(tmp_path, max_steps=3000, densify=ADCConfig()).setup()
-    assert trainer.gtn is not None and "opacity reset" not in trainer.decisions
-    plain = AdaptiveDensityControl(ADCConfig(), 3000, trainer.extent, len(trainer.dataset.train_indices))
-    assert trainer.densifier.reset_every == plain.reset_every > 0
+    rain = tiny_metegs(tmp_path / "rain", max_steps=3000, densify=ADCConfig()).setup()  # 20 mm/h and 400 m
+    assert rain.gtn is not None and "opacity reset" not in rain.decisions
+    plain = AdaptiveDensityControl(ADCConfig(), 3000, rain.extent, len(rain.dataset.train_indices))
+    assert rain.densifier.reset_every == plain.reset_every > 0
+    fog = ConditionsConfig(precip_mm_h=0.0, visibility_m=300.0, metres_per_unit=100.0)
+    foggy = tiny_metegs(tmp_path / "fog", max_steps=3000, densify=ADCConfig(), conditions=fog).setup()
+    assert foggy.gtn is not None and foggy.densifier.reset_every == 0
+    assert foggy.decisions["opacity reset"].startswith("off: no rain leaves no streaks")
