@@ -133,9 +133,8 @@ class FogAnalytic(WeatherModel):
         rays = self._rays[view].to(rgb)
         distance = out.depth * rays * self.scene.metres_per_unit
         distance = torch.where(out.alpha > 1e-6, distance, torch.zeros_like(distance))
-        if not self.layered:
-            return fog_composite(color, out.alpha, distance, self.beta_rgb.to(rgb), self.airlight.to(rgb))
-        distance = distance * self.height_factor(self.rise(view, rays), distance, view)
+        if self.layered:
+            distance = distance * self.height_factor(self.rise(view, rays), distance, view)
         return fog_composite(color, out.alpha, distance, self.beta_rgb.to(rgb), self.airlight.to(rgb))
 
     def rise(self, view: int, rays: torch.Tensor) -> torch.Tensor:
@@ -190,5 +189,11 @@ class FogAnalytic(WeatherModel):
         return out
 
     def transmittance(self, points: torch.Tensor, view: int) -> torch.Tensor:
-        """[N] exp(−β·d) of world points [N, 3] seen from view ``view``, averaged over R, G, B."""
-        return torch.exp(-self.scene.distance_m(points, view)[:, None] * self.beta_rgb.detach().to(points)).mean(-1)
+        """[N] transmittance of the fog between view ``view``'s camera and world points [N, 3] (exp(−β·d) scaled by
+        the height profile when layered), averaged over R, G, B."""
+        distance = self.scene.distance_m(points, view)
+        if self.layered:
+            offset = points - self.scene.cameras.centers[view].to(points)
+            rise = (offset @ self.up.to(points)) / offset.norm(dim=-1).clamp_min(1e-12)
+            distance = distance * self.height_factor(rise, distance, view).detach()
+        return torch.exp(-distance[:, None] * self.beta_rgb.detach().to(points)).mean(-1)

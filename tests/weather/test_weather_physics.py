@@ -208,6 +208,8 @@ def test_height_fog_optical_depth_matches_the_integral_along_each_ray():
         tau = beta.double() * float(torch.exp(-k * rise * s).mean()) * length  # the integral, numerically
         t = 1.0 - rgb[row, col].detach().double() / a.double()
         assert torch.allclose(t, torch.exp(-tau), rtol=1e-3), (row, col)
+        point = (ray * d).float()[None]  # the surface that pixel sees: the same medium in front of it
+        assert float(fog.transmittance(point, 0)) == pytest.approx(float(t.mean()), rel=1e-3)
     t_up, t_down = (float(1 - rgb[row, W // 2, 0].detach() / a[0]) for row in (0, H - 1))
     assert t_up > t_down  # looking up, the fog thins: more of the scene shows
     rgb.sum().backward()
