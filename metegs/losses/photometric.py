@@ -1,4 +1,4 @@
-"""Photometric loss of 3DGS: (1 - λ)·L1 + λ·(1 - SSIM)."""
+"""Photometric loss of 3DGS: (1 - λ)·L1 + λ·(1 - SSIM), the SSIM map compiled on CPU (`fused_ssim`)."""
 
 from __future__ import annotations
 
@@ -8,6 +8,7 @@ from typing import Annotated
 import torch
 
 from metegs.config import InstantiateConfig
+from metegs.losses.fused_ssim import training_ssim_map
 from metegs.validate import FRACTION
 
 
@@ -29,8 +30,6 @@ class PhotometricLoss:
     def __call__(self, pred: torch.Tensor, target: torch.Tensor, weights: torch.Tensor | None = None) -> torch.Tensor:
         """Scalar loss of ``pred`` against ``target`` (both [H, W, 3]); ``weights`` [H, W] (e.g. an inlier mask)
         restricts both terms to the pixels it weighs, as a weighted mean."""
-        from metegs.eval.metrics import ssim_map
-
         lam = self.config.ssim_lambda
         w = None if weights is None else weights[..., None]
         denom = None if w is None else w.sum().clamp_min(1.0)
@@ -38,6 +37,6 @@ class PhotometricLoss:
         l1 = diff.mean() if w is None else (diff * w).sum() / (denom * pred.shape[-1])
         if lam == 0:
             return l1
-        sim = ssim_map(pred, target, crop_border=False)
+        sim = training_ssim_map(pred, target)
         s = sim.mean() if w is None else (sim * w).sum() / (denom * pred.shape[-1])
         return (1.0 - lam) * l1 + lam * (1.0 - s)

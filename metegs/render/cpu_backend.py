@@ -4,7 +4,8 @@ Three ops, each the equivalent of a torch reference stage (and tested against it
 ``csrc/project.cpp`` (EWA projection + SH colours, `ProjectShade`; reference: `project_gaussians` and
 `gaussian_colors`), ``csrc/binning.cpp`` (depth-sorted tile lists with an exact ellipse-tile test;
 reference: `bin_gaussians`) and ``csrc/composite.cpp`` (tile compositing, `CompositeTiles`; reference:
-`torch_backend.composite_tiles`), and ``csrc/peak.cpp``, the float32 multiply-add throughput of the kernels' threads
+`torch_backend.composite_tiles`); beside them ``csrc/ssim.cpp``, the training loss's SSIM map with its backward
+(`metegs.losses.fused_ssim`), and ``csrc/peak.cpp``, the float32 multiply-add throughput of the kernels' threads
 (`measure_peak_gflops`, the raster benchmark's measured floor). The extension is compiled with `torch.utils.cpp_extension` on first use (about a minute)
 and cached in ``~/.cache/metegs/torch_extensions/<torch version>/<cpu tag>/`` (``$XDG_CACHE_HOME``
 is honoured, ``METEGS_EXTENSIONS_DIR`` overrides the whole path); later processes only load it.
@@ -39,7 +40,9 @@ from metegs.render.pipeline import finish_render, resolve_sh_degree
 from metegs.render.tiles import TILE_SIZE, TileBins
 
 CSRC = Path(__file__).parent / "csrc"
-SOURCES = [CSRC / name for name in ("bindings.cpp", "project.cpp", "binning.cpp", "composite.cpp", "peak.cpp")]
+SOURCES = [
+    CSRC / name for name in ("bindings.cpp", "project.cpp", "binning.cpp", "composite.cpp", "ssim.cpp", "peak.cpp")
+]
 HEADERS = [CSRC / "metegs_cpu.h", CSRC / "pool.h"]
 _TORCH_TAG = "".join(ch if ch.isalnum() else "_" for ch in torch.__version__)
 EXTENSION_NAME = f"metegs_cpu_composite_{_TORCH_TAG}"

@@ -20,6 +20,10 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("finish_forward", &metegs_cpu::finish_forward, "background and expected depth of a render (CPU)", nogil);
   m.def("finish_backward", &metegs_cpu::finish_backward, "backward of finish_forward (CPU)", nogil, py::arg("alpha"),
         py::arg("depth_sum"), py::arg("background"), py::arg("g_rgb"), py::arg("g_depth") = py::none());
+  m.def("ssim_forward", &metegs_cpu::ssim_forward, "SSIM map of the training loss and its partials (CPU)", nogil,
+        py::arg("x"), py::arg("y"), py::arg("window"), py::arg("c1"), py::arg("c2"));
+  m.def("ssim_backward", &metegs_cpu::ssim_backward, "backward of ssim_forward with respect to x (CPU)", nogil,
+        py::arg("x"), py::arg("y"), py::arg("window"), py::arg("partials"), py::arg("g_map"));
   m.def("fma_throughput", &metegs_cpu::fma_throughput,
         "float32 multiply-adds on the kernels' threads -> [seconds, flops, checksum] (the machine's peak, measured)",
         nogil, py::arg("chunks"), py::arg("iterations"), py::arg("a") = 1.0, py::arg("b") = 1.0);

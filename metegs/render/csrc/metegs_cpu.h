@@ -117,6 +117,12 @@ std::vector<at::Tensor> finish_forward(at::Tensor color, at::Tensor alpha, at::T
 std::vector<at::Tensor> finish_backward(at::Tensor alpha, at::Tensor depth_sum, at::Tensor background, at::Tensor g_rgb,
                                         c10::optional<at::Tensor> g_depth);
 
+// ssim.cpp: the SSIM map of the training loss (zero-padded 'same' Gaussian windows) of x against y, both [B, H, W, C]
+// -> {map [B, H, W, C], partials [3, B, H, W, C] (for ssim_backward)}; c1, c2: the SSIM constants.
+std::vector<at::Tensor> ssim_forward(at::Tensor x, at::Tensor y, at::Tensor window, double c1, double c2);
+// -> gradient of x [B, H, W, C] given the map's gradient g_map [B, H, W, C].
+at::Tensor ssim_backward(at::Tensor x, at::Tensor y, at::Tensor window, at::Tensor partials, at::Tensor g_map);
+
 // peak.cpp: the float32 multiply-add throughput of the kernels' threads (the arithmetic floor's peak, measured).
 // -> {seconds, flops, checksum}; see fma_throughput's comment.
 std::vector<double> fma_throughput(int64_t chunks, int64_t iterations, double a, double b);
