@@ -6,7 +6,9 @@ initialisation, full SH degree), so footprints are those of a real early-trainin
 A step is the trainer's `train_step` held at mid-run on a step where no refinement, opacity reset or
 extra points are due: for `3dgs` render + `(1-λ)·L1 + λ·(1-SSIM)` + backward + Adam (+ the
 densification statistics); for `metegs-full` as `metegs-train metegs-full` runs it on the built-in
-scene (rain and fog synthesised, the weather branch through the GTN, the clean branch).
+scene (rain and fog synthesised, the weather branch through the GTN, the clean branch); `metegs-full-blind`
+the same without clean references (no clean branch), as on a user's capture. Each record also times the
+rasteriser alone on the same model (`raster_ms`), the floor of a step.
 """
 
 from __future__ import annotations
@@ -26,8 +28,9 @@ from metegs.errors import ConfigError
 from metegs.gaussians.model import GaussianModel
 from metegs.render.cpu_backend import thread_split
 
-METHODS = ("3dgs", "metegs-full")
-"""Methods whose steps the benchmark can time."""
+METHODS = ("3dgs", "metegs-full", "metegs-full-blind")
+"""Methods whose steps the benchmark can time (`metegs-full-blind`: without the clean references, as on a user's
+capture: no clean branch)."""
 
 
 @dataclass
@@ -41,6 +44,8 @@ class StepRecord:
     height: int
     step_ms: float
     """Median time of a full training step."""
+    raster_ms: float
+    """Median time of the rasteriser alone on the same model and views: the scene's render and its backward."""
     iterations_per_s: float
     rss_before_mb: float
     """Resident memory of the process before the steps (torch, the dataset, the model)."""
@@ -80,11 +85,16 @@ def method_config(config: TrainConfig, method: str) -> TrainConfig:
     """``config``'s device, threads and dataset for ``method`` (`3dgs`: ``config`` itself)."""
     if method == "3dgs":
         return config
-    if method == "metegs-full":
+    if method in ("metegs-full", "metegs-full-blind"):
         from metegs.methods import metegs_full
 
         shared = ("device", "threads", "torch_threads", "dataset", "seed", "backend")
-        return replace(metegs_full(), compare_baseline=False, **{k: getattr(config, k) for k in shared})
+        return replace(
+            metegs_full(),
+            compare_baseline=False,
+            clean_supervision=method == "metegs-full",
+            **{k: getattr(config, k) for k in shared},
+        )
     raise ConfigError(f"--methods: unknown method {method!r}; expected one of {', '.join(METHODS)}")
 
 
@@ -122,6 +132,7 @@ def _time_sizes(trainer: Trainer, method: str, sizes: list[int], repeats: int, p
             sync(trainer.device)
             if i > 0:  # the first step warms up
                 times.append(time.perf_counter() - t0)
+        raster = _raster_ms(trainer, views, repeats)
         # memory in steps of their own: on CPU a thread samples the resident set every 0.5 ms, which would
         # take CPU time and the GIL from the timed steps
         before = rss_mb()
@@ -131,8 +142,29 @@ def _time_sizes(trainer: Trainer, method: str, sizes: list[int], repeats: int, p
         ms = statistics.median(times) * 1e3
         W, H = int(trainer.dataset.cameras.width[0]), int(trainer.dataset.cameras.height[0])
         records.append(
-            StepRecord(method, config.backend, n, W, H, ms, 1e3 / ms, before, mem.peak_mb, torch.get_num_threads())
+            StepRecord(
+                method, config.backend, n, W, H, ms, raster, 1e3 / ms, before, mem.peak_mb, torch.get_num_threads()
+            )
         )
         if progress is not None:
             progress(records[-1])
     return records
+
+
+def _raster_ms(trainer: Trainer, views: list[int], repeats: int) -> float:
+    """Median ms of ``trainer``'s scene render of a training view and its backward (of a fixed random weighting of
+    the colours), after one warm-up: the rasteriser's share of a step."""
+    times = []
+    for i in range(repeats + 1):
+        index = views[i % len(views)]
+        bg = trainer.background(training=True)
+        t0 = time.perf_counter()
+        out = trainer.render(index, background=bg)
+        grad = torch.rand(out.rgb.shape, generator=torch.Generator().manual_seed(i)).to(out.rgb)
+        out.rgb.backward(grad)
+        sync(trainer.device)
+        if i > 0:
+            times.append(time.perf_counter() - t0)
+    for p in trainer.model.params.values():
+        p.grad = None
+    return statistics.median(times) * 1e3

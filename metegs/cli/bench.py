@@ -109,8 +109,11 @@ class StepArgs(_BenchArgs):
     """Image height of the synthetic scene (default: its default, 120)."""
     repeats: Annotated[int, Range(1)] = 10
     """Timed steps per configuration (after one warm-up step); the median is reported."""
-    methods: list[Literal["3dgs", "metegs-full"]] = field(default_factory=lambda: ["3dgs", "metegs-full"])
-    """Methods whose training steps are timed (`x 3dgs`: each row's time over the 3dgs row's)."""
+    methods: list[Literal["3dgs", "metegs-full", "metegs-full-blind"]] = field(
+        default_factory=lambda: ["3dgs", "metegs-full", "metegs-full-blind"]
+    )
+    """Methods whose training steps are timed (`x 3dgs`: each row's time over the 3dgs row's; `x raster`: over the
+    rasteriser's render and backward on the same model; `metegs-full-blind`: without clean references)."""
 
 
 @dataclass
@@ -302,6 +305,8 @@ def step(args: StepArgs) -> list[dict]:
             f"{r['width']}x{r['height']}",
             f"{r['step_ms']:.1f}",
             f"{r['step_ms'] / plain[key]:.2f}" if key in plain else "-",
+            f"{r['raster_ms']:.1f}",
+            f"{r['step_ms'] / r['raster_ms']:.2f}",
             f"{r['iterations_per_s']:.1f}",
             f"{r['rss_before_mb']:.0f}",
             f"{r['step_peak_mb']:.0f}",
@@ -309,7 +314,19 @@ def step(args: StepArgs) -> list[dict]:
 
     table = _table(
         "training step of each method (mid-run, no refinement due), median",
-        ("method", "backend", "N", "image", "ms/step", "x 3dgs", "it/s", "RSS before MB", "step peak +MB"),
+        (
+            "method",
+            "backend",
+            "N",
+            "image",
+            "ms/step",
+            "x 3dgs",
+            "raster ms",
+            "x raster",
+            "it/s",
+            "RSS before MB",
+            "step peak +MB",
+        ),
     )
     return args.report(records, table, row)
 

@@ -82,14 +82,20 @@ def test_step_records(tmp_path):
 
 
 def test_step_times_metegs_full_beside_3dgs(capsys, monkeypatch):
-    """The metegs-full row runs the method's own step (weather branch, GTN, clean branch) on the same resampled
-    model as the 3dgs row, and the table gives their ratio."""
+    """The metegs-full rows run the method's own step (weather branch, GTN, and with references the clean branch) on
+    the same resampled model as the 3dgs row, and the table gives their ratios to it and to the rasteriser."""
     monkeypatch.setenv("COLUMNS", "250")
     rows = step(StepArgs(sizes=[400], width=40, height=30, repeats=2, backends=["torch"]))
-    assert [r["method"] for r in rows] == ["3dgs", "metegs-full"] and all(r["step_ms"] > 0 for r in rows)
-    line = next(x for x in capsys.readouterr().out.splitlines() if "metegs-full" in x and "40x30" in x)
-    ratio = float([c.strip() for c in line.strip("│ ").split("│")][5])
+    assert [r["method"] for r in rows] == ["3dgs", "metegs-full", "metegs-full-blind"]
+    assert all(r["step_ms"] > 0 and r["raster_ms"] > 0 for r in rows)
+    lines = capsys.readouterr().out.splitlines()
+    cells = {m: [c.strip() for c in next(x for x in lines if f" {m} " in x).strip("│ ").split("│")] for m in
+             ("metegs-full", "metegs-full-blind")}  # fmt: skip
+    ratio, over_raster = float(cells["metegs-full"][5]), float(cells["metegs-full"][7])
     assert ratio == pytest.approx(rows[1]["step_ms"] / rows[0]["step_ms"], abs=0.01) and ratio > 1
+    assert over_raster == pytest.approx(rows[1]["step_ms"] / rows[1]["raster_ms"], abs=0.01) and over_raster > 1
+    blind = float(cells["metegs-full-blind"][5])
+    assert blind == pytest.approx(rows[2]["step_ms"] / rows[0]["step_ms"], abs=0.01)
 
 
 def test_held_at_mid_run_no_refinement_or_extra_points_are_due(tmp_path):
