@@ -71,7 +71,14 @@ class DensifyState:
 class AdaptiveDensityControl:
     """Grows and prunes scene Gaussians from the 2D-mean gradients of the renders."""
 
-    def __init__(self, config: ADCConfig, max_steps: int, extent: float, num_train_views: int = 1):
+    def __init__(
+        self,
+        config: ADCConfig,
+        max_steps: int,
+        extent: float,
+        num_train_views: int = 1,
+        prune_rule: Callable[[GaussianModel, float], torch.Tensor] | None = None,
+    ):
         self.config = config
         self.extent = extent
         c = config
@@ -81,7 +88,7 @@ class AdaptiveDensityControl:
         reset = int(round(c.reset_every * max_steps)) if c.reset_every > 0 else 0
         self.reset_every = reset if reset >= 3 * self.every else 0
         self.state: DensifyState | None = None
-        self.prune_rule: Callable[[GaussianModel, float], torch.Tensor] | None = None
+        self.prune_rule = prune_rule
         """Optional per-Gaussian opacity thresholds ``(model, prune_opacity) -> [N]`` used instead of the scalar
         ``prune_opacity`` (e.g. `metegs.densify.depth_prune.DepthAwarePruning`); its prunes are reported as
         ``prune_depth``."""
@@ -91,9 +98,7 @@ class AdaptiveDensityControl:
         return {"start": self.start_step, "stop": self.stop_step, "every": self.every, "reset_every": self.reset_every}
 
     @torch.no_grad()
-    def update_stats(
-        self, model: GaussianModel, out: RenderOutput, num_scene: int | None = None
-    ) -> None:
+    def update_stats(self, model: GaussianModel, out: RenderOutput, num_scene: int | None = None) -> None:
         """Accumulate screen-space gradient norms of the first ``num_scene`` Gaussians (weather ones excluded)."""
         n = len(model) if num_scene is None else num_scene
         if self.state is None or self.state.grad_sum.shape[0] != len(model):

@@ -8,13 +8,14 @@ Evaluation, renders and export use the clean branch only.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import torch
 
 from metegs.engine.metegs_config import MeteGSConfig
 from metegs.engine.optim import adam
-from metegs.engine.trainer import Trainer
+from metegs.engine.trainer import StepRender, Trainer
 from metegs.losses.robust import inlier_weights
 from metegs.models.gtn import may_be_visible
 from metegs.render import RenderSettings
@@ -85,7 +86,7 @@ class MeteGSTrainer(Trainer):
                 f"{r.k_sigma:g} robust sigmas of their view's residuals (grown by {r.dilate_px} px) are left out",
             )
         self._feature_cache: dict[int, list[dict[str, torch.Tensor]]] = {}
-        self._setup_densifiers()
+        self._setup_extra_points()
         self.method_optimizers = self._method_optimizers()
 
     def _build_weather(self) -> list[WeatherModel]:
@@ -183,13 +184,6 @@ class MeteGSTrainer(Trainer):
             return None
         centre = self.dataset.cameras[self.dataset.train_indices].camera_to_worlds[:, :3, 3].mean(0)
         gtn = GaussianTransformationNetwork(c.gtn, centre, self.extent).to(self.device)
-        if rain.intensity_class in LIGHT_OR_NONE and getattr(self.densifier, "reset_every", 0):
-            self.densifier.reset_every = 0
-            self.decide(
-                "opacity reset",
-                f"off: {rain_phrase(rain)} leaves no streaks for resets to clear, and under the fog a reset costs "
-                "Gaussians that its dimmed gradients hardly regrow",
-            )
         self.decide("gtn", f"on: scale/rotation growth in [1, {c.gtn.max_factor}]")
         return gtn
 
@@ -210,17 +204,10 @@ class MeteGSTrainer(Trainer):
         self.decide("perceptual", f"on: {loss.backbone_name} features, weight {c.weights.perceptual}")
         return loss
 
-    def _setup_densifiers(self) -> None:
-        from metegs.densify.depth_prune import DepthAwarePruning
+    def _setup_extra_points(self) -> None:
         from metegs.densify.extra_points import ExtraPointCompensation
 
         c = self.config
-        train_cams = self.dataset.cameras[self.dataset.train_indices]
-        if c.depth_prune:
-            self.densifier.prune_rule = DepthAwarePruning(c.depth_prune_options, train_cams).thresholds
-            self.decide("depth pruning", f"on ({c.depth_prune_options.depth_mode} depth)")
-        else:
-            self.decide("depth pruning", "off")
         self.extra_points = None
         if c.extra_points and self.random_init:
             # Deblurring-3DGS fills the sparse regions of an SfM point cloud; random points have none, and on the
@@ -232,6 +219,32 @@ class MeteGSTrainer(Trainer):
             self.decide("extra points", f"on at step {round(c.extra_points_options.at * c.max_steps)}")
         else:
             self.decide("extra points", "off")
+
+    def make_densifier(self):
+        """The configured densification with depth-aware pruning (`depth_prune`) as its pruning rule, and without
+        opacity resets where the GTN works with no rain to clear."""
+        from metegs.densify.depth_prune import DepthAwarePruning
+
+        c, rule = self.config, None
+        if c.depth_prune:
+            rule = DepthAwarePruning(c.depth_prune_options, self.dataset.cameras[self.dataset.train_indices]).thresholds
+            self.decide("depth pruning", f"on ({c.depth_prune_options.depth_mode} depth)")
+        else:
+            self.decide("depth pruning", "off")
+
+        def build(options):
+            views = len(self.dataset.train_indices)
+            return options.setup(max_steps=c.max_steps, extent=self.extent, num_train_views=views, prune_rule=rule)
+
+        densifier, rain = build(c.densify), self.weather_theta(self.scene).rain
+        if self.gtn is not None and rain.intensity_class in LIGHT_OR_NONE and getattr(densifier, "reset_every", 0):
+            self.decide(
+                "opacity reset",
+                f"off: {rain_phrase(rain)} leaves no streaks for resets to clear, and under the fog a reset costs "
+                "Gaussians that its dimmed gradients hardly regrow",
+            )
+            densifier = build(replace(c.densify, reset_every=0.0))
+        return densifier
 
     def _method_optimizers(self) -> dict[str, torch.optim.Optimizer]:
         optimizers = {}
@@ -275,46 +288,49 @@ class MeteGSTrainer(Trainer):
             scene = self.gtn(scene, camera.camera_to_worlds[0, :3, 3], only)
         return render_with_weather(self.rasterizer, scene, self.weather_models, index, camera, settings)
 
-    def train_step(self, index: int) -> dict[str, float]:
+    def photo_render(self, index: int, background: torch.Tensor) -> StepRender:
+        """The weather branch: the scene through the GTN with the weather, judged by the photo."""
+        weather = self.render_weather(index, background, training=True)
+        # densification follows the photo fit only: weather Gaussians excluded
+        return StepRender(weather.rgb, weather.out, weather.num_scene)
+
+    def step_loss(
+        self, index: int, background: torch.Tensor, render: StepRender, target: torch.Tensor, stats: dict[str, float]
+    ) -> torch.Tensor:
+        """The weather branch's (trimmed) photometric loss, the weather models' priors and, with clean references,
+        the clean branch's L1 and perceptual terms."""
         c = self.config
-        self.schedule_step()
-        bg = self.background(training=True)
-        target = self.target(index, bg)
-        stats: dict[str, float] = {}
-        weather = self.render_weather(index, bg, training=True)
         weights = None
         if self.robust_from is not None and self.step >= self.robust_from:
-            weights = inlier_weights(target - weather.rgb.detach(), c.robust)
+            weights = inlier_weights(target - render.rgb.detach(), c.robust)
             stats["inliers"] = float(weights.mean())
-        loss = c.weights.photo * self.loss_fn(weather.rgb, target, weights)
+        loss = c.weights.photo * self.loss_fn(render.rgb, target, weights)
         for m in self.weather_models:
             prior = m.prior(index)
             if prior is not None:
                 loss = loss + prior
         if self.use_clean and (c.weights.clean > 0 or self.perceptual is not None):
-            settings = RenderSettings(background=bg, sh_degree=self.model.active_sh_degree)
+            settings = RenderSettings(background=background, sh_degree=self.model.active_sh_degree)
             clean = self.rasterizer.render(self.model.activated(), self.dataset.cameras[index], settings)
-            reference = self.reference(index, bg)
+            reference = self.reference(index, background)
             if c.weights.clean > 0:
                 loss = loss + c.weights.clean * (clean.rgb - reference).abs().mean()
             if self.perceptual is not None:
                 loss = loss + c.weights.perceptual * self.perceptual(
                     clean.rgb, target_features=self._reference_features(index, reference)
                 )
-        loss.backward()
-        # densification follows the photo fit only: weather Gaussians excluded, the clean branch's small
-        # reference terms do not count twice
-        self.densifier.update_stats(self.model, weather.out, weather.num_scene)
-        for opt in (*self.optimizers.values(), *self.method_optimizers.values()):
-            opt.step()
-            opt.zero_grad(set_to_none=True)
-        changes = self.densifier.step(self.model, self.optimizers, self.step)
+        return loss
+
+    def step_optimizers(self) -> list[torch.optim.Optimizer]:
+        """The Gaussians' optimisers and the method's (GTN, weather)."""
+        return [*super().step_optimizers(), *self.method_optimizers.values()]
+
+    def densify_step(self) -> dict[str, int]:
+        """The densification schedule, then the extra points once (`extra_points`)."""
+        changes = super().densify_step()
         if self.extra_points is not None:
             changes.update(self.extra_points.step(self.model, self.optimizers, self.step))
-        with torch.no_grad():
-            mse = float(((weather.rgb.clamp(0, 1) - target) ** 2).mean())
-        stats.update({"loss": float(loss.detach()), "psnr": -10 * torch.log10(torch.tensor(max(mse, 1e-10))).item()})
-        return {**stats, **changes}
+        return changes
 
     def _reference_features(self, index: int, reference: torch.Tensor) -> list[dict[str, torch.Tensor]]:
         """Perceptual features of a view's clean reference, kept while they fit in `PERCEPTUAL_CACHE_MB`

@@ -5,9 +5,10 @@ from __future__ import annotations
 import contextlib
 import functools
 import json
+import math
 import random
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from datetime import datetime
 from pathlib import Path
 
@@ -35,7 +36,7 @@ from metegs.engine.progress import TrainProgress
 from metegs.errors import ConfigError, DataError, Interrupted
 from metegs.gaussians.model import GaussianModel
 from metegs.meteo import Theta
-from metegs.render import RenderSettings, make_rasterizer
+from metegs.render import RenderOutput, RenderSettings, make_rasterizer
 from metegs.render.cpu_backend import thread_split, thread_split_counts
 from metegs.render.select import resolve_backend
 
@@ -59,6 +60,18 @@ def non_finite_params(model: GaussianModel) -> list[str]:
         if bool(torch.isfinite(sums).all()):
             return []
         return [name for name, p in model.params.items() if not bool(torch.isfinite(p).all())]
+
+
+@dataclass
+class StepRender:
+    """What a training step rendered for its photo."""
+
+    rgb: torch.Tensor
+    """[H, W, 3] the image the photometric loss compares with the photo."""
+    out: RenderOutput
+    """The rasterisation behind it, whose screen-space gradients densification reads."""
+    num_scene: int | None = None
+    """How many of ``out``'s Gaussians are scene Gaussians, the first ones (None: all)."""
 
 
 def seed_everything(seed: int) -> None:
@@ -134,9 +147,6 @@ class Trainer:
         else:
             self.model = self._initial_model()
         self.optimizers = make_optimizers(self.model.params, config.optim, self.extent)
-        self.densifier = config.densify.setup(
-            max_steps=config.max_steps, extent=self.extent, num_train_views=len(self.dataset.train_indices)
-        )
         self.loss_fn = config.loss.setup()
         self.step = 0
         self.history: list[dict] = []
@@ -147,6 +157,7 @@ class Trainer:
         self.run_dir = Path(run_dir) if run_dir is not None else self._default_run_dir()
         """The run folder; a default one is claimed (made new, never reused) when training starts."""
         self.setup_method()
+        self.densifier = self.make_densifier()
         if ckpt is not None:
             self._restore_state(ckpt)
 
@@ -343,6 +354,13 @@ class Trainer:
     def setup_method(self) -> None:
         """Build what a method adds to plain 3DGS (weather, networks, extra losses); nothing here."""
 
+    def make_densifier(self):
+        """The run's densification strategy, built after `setup_method` (methods configure it through its options,
+        never by changing it afterwards)."""
+        return self.config.densify.setup(
+            max_steps=self.config.max_steps, extent=self.extent, num_train_views=len(self.dataset.train_indices)
+        )
+
     def schedule_step(self) -> None:
         """SH degree and position learning rate for the current step."""
         self.model.active_sh_degree = self.sh_degree_at(self.step)
@@ -351,21 +369,45 @@ class Trainer:
         )
 
     def train_step(self, index: int) -> dict[str, float]:
-        """Render one training view, backpropagate, update the parameters and densify on schedule."""
+        """One training step on view ``index``: schedule, render, losses, backward, densification statistics,
+        optimisers, densification, stats. Methods fill its hooks (`photo_render`, `step_loss`, `step_optimizers`,
+        `densify_step`) instead of repeating it."""
         self.schedule_step()
         bg = self.background(training=True)
-        out = self.render(index, background=bg)
         target = self.target(index, bg)
-        loss = self.loss_fn(out.rgb, target)
+        render = self.photo_render(index, bg)
+        stats: dict[str, float] = {}
+        loss = self.step_loss(index, bg, render, target, stats)
         loss.backward()
-        self.densifier.update_stats(self.model, out)
-        for opt in self.optimizers.values():
+        self.densifier.update_stats(self.model, render.out, render.num_scene)
+        for opt in self.step_optimizers():
             opt.step()
             opt.zero_grad(set_to_none=True)
-        changes = self.densifier.step(self.model, self.optimizers, self.step)
+        changes = self.densify_step()
         with torch.no_grad():
-            mse = float(((out.rgb.clamp(0, 1) - target) ** 2).mean())
-        return {"loss": float(loss.detach()), "psnr": -10 * np.log10(max(mse, 1e-10)), **changes}
+            mse = float(((render.rgb.clamp(0, 1) - target) ** 2).mean())
+        stats.update({"loss": float(loss.detach()), "psnr": -10 * math.log10(max(mse, 1e-10))})
+        return {**stats, **changes}
+
+    def photo_render(self, index: int, background: torch.Tensor) -> StepRender:
+        """The render of training view ``index`` that its photo judges: the scene's here."""
+        out = self.render(index, background=background)
+        return StepRender(out.rgb, out)
+
+    def step_loss(
+        self, index: int, background: torch.Tensor, render: StepRender, target: torch.Tensor, stats: dict[str, float]
+    ) -> torch.Tensor:
+        """The step's scalar loss (``stats`` takes what a method reports besides loss and PSNR): the photometric
+        loss of the render against the photo here."""
+        return self.loss_fn(render.rgb, target)
+
+    def step_optimizers(self) -> list[torch.optim.Optimizer]:
+        """Every optimiser a step updates: the Gaussians' here."""
+        return list(self.optimizers.values())
+
+    def densify_step(self) -> dict[str, int]:
+        """Densification after the optimisers (counts of what changed): the strategy's schedule here."""
+        return self.densifier.step(self.model, self.optimizers, self.step)
 
     # --- the loop ----------------------------------------------------------------------------------
     def train(self) -> dict:

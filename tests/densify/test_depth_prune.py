@@ -124,8 +124,7 @@ def test_adc_with_the_depth_rule_keeps_far_faint_gaussians_that_plain_adc_prunes
     def run(rule):
         model = model_at(means, opac)
         opts = make_optimizers(model.params, OptimConfig(), extent=1.0)
-        adc = AdaptiveDensityControl(ADCConfig(prune_opacity=0.005), max_steps=3000, extent=1.0)
-        adc.prune_rule = rule
+        adc = AdaptiveDensityControl(ADCConfig(prune_opacity=0.005), max_steps=3000, extent=1.0, prune_rule=rule)
         report = adc.refine(model, opts, step=100)
         return model.params["means"][:, 2].detach(), report
 

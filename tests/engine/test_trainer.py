@@ -222,3 +222,41 @@ def test_the_run_records_the_image_size_its_device_chose(tmp_path):
     trainer.train()
     assert config_changes(trainer.run_dir, config) == []  # None in the suite's config: the device's choice
     assert config_changes(trainer.run_dir, replace(config, dataset=replace(ds, auto_max_side=320))) == ["dataset"]
+
+
+def test_a_method_extends_the_step_through_its_hooks(tmp_path):
+    """A method adds a loss term, an optimiser and a densification action by filling the step's hooks; the step
+    itself (schedule, backward, statistics, optimisers, densification, stats) is the base trainer's."""
+    from metegs.engine.trainer import StepRender, Trainer
+
+    class Tinted(Trainer):
+        def setup_method(self):
+            self.tint = torch.zeros(3, requires_grad=True)
+            self.tint_opt = torch.optim.Adam([self.tint], lr=0.05)
+            self.densified = 0
+
+        def photo_render(self, index, background):
+            out = self.render(index, background=background)
+            return StepRender(out.rgb + self.tint, out, num_scene=len(self.model))
+
+        def step_loss(self, index, background, render, target, stats):
+            stats["tint"] = float(self.tint.detach().abs().sum())
+            return super().step_loss(index, background, render, target, stats) + 0.1 * self.tint.square().sum()
+
+        def step_optimizers(self):
+            return [*super().step_optimizers(), self.tint_opt]
+
+        def densify_step(self):
+            self.densified += 1
+            return super().densify_step()
+
+    config = tiny_config(tmp_path)
+    trainer = Tinted(config)
+    # photos 0.2 brighter than the scene renders: the tint learns what the scene cannot
+    trainer.dataset.images = [(img + 0.2).clamp(0, 1) for img in trainer.dataset.images]
+    means_before = trainer.model.params["means"].detach().clone()
+    stats = [trainer.train_step(i) for i in trainer.dataset.train_indices[:8]]
+    assert trainer.densified == 8 and all({"loss", "psnr", "tint"} <= set(s) for s in stats)
+    assert float(trainer.tint.detach().mean()) > 0.05 and trainer.tint.grad is None  # stepped, then zeroed
+    assert not torch.equal(trainer.model.params["means"].detach(), means_before)
+    assert trainer.densifier.state is not None and float(trainer.densifier.state.count.sum()) > 0
