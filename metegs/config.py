@@ -2,20 +2,18 @@
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import hashlib
 import os
-import tempfile
 import types
 import typing
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, TypeVar
 
 import yaml
 
-from metegs.errors import ConfigError, DataError
+from metegs.errors import ConfigError
+from metegs.files import atomic_write_text
 
 C = TypeVar("C")
 
@@ -143,64 +141,6 @@ def scene_cache(scene: Path, name: str, kind: str) -> Path:
         return inside
     digest = hashlib.sha1(str(Path(scene).resolve()).encode()).hexdigest()[:16]
     return user_cache(kind, digest)
-
-
-def _umask() -> int:
-    """The process's file-creation mask (read once; Linux reports it in /proc without changing it)."""
-    try:
-        with open("/proc/self/status", encoding="ascii") as f:
-            for line in f:
-                if line.startswith("Umask:"):
-                    return int(line.split()[1], 8)
-    except OSError:
-        pass
-    mask = os.umask(0o022)
-    os.umask(mask)
-    return mask
-
-
-NEW_FILE_MODE = 0o666 & ~_umask()
-"""Permissions of the files metegs writes: those of any new file under the user's umask (0644 under 022), not
-the 0600 of the temporary files they are written through."""
-
-
-@contextlib.contextmanager
-def atomic_output(path: Path, suffix: str = ".tmp") -> Iterator[Path]:
-    """A temporary path beside ``path`` to write to; when the block ends without error it is renamed to ``path``
-    with `NEW_FILE_MODE`, so a crash never leaves half a file; on error it is removed. ``suffix``: the temporary
-    file's extension, for writers that choose a format from it."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=suffix)
-    os.close(fd)
-    tmp = Path(name)
-    try:
-        yield tmp
-        os.chmod(tmp, NEW_FILE_MODE)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-
-
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` through `atomic_output`."""
-    with atomic_output(path) as tmp:
-        tmp.write_bytes(data)
-
-
-def atomic_write_text(path: Path, text: str) -> None:
-    """`atomic_write_bytes` of UTF-8 ``text``."""
-    atomic_write_bytes(path, text.encode("utf-8"))
-
-
-def write_result(path: Path, text: str) -> None:
-    """`atomic_write_text` of a result that must not be lost: when the write fails, the text goes to standard output
-    and a DataError names the path."""
-    try:
-        atomic_write_text(path, text)
-    except OSError as exc:
-        print(text, flush=True)
-        raise DataError(path, f"cannot write ({exc.strerror or exc}); the result is printed above instead") from None
 
 
 def save_yaml(config: Any, path: Path, header: dict[str, Any] | None = None) -> None:

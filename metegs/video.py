@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 import torch
 
-from metegs.config import atomic_output, atomic_write_bytes
+from metegs.files import atomic_output, atomic_write_bytes
 
 
 def to_uint8(image: torch.Tensor) -> np.ndarray:

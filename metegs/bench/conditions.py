@@ -28,8 +28,8 @@ from typing import Any
 
 from metegs.errors import ConfigError, DataError
 from metegs.meteo.aggregate import RAIN_CLASSES
-from metegs.synth.degrade import FAMILIES
 from metegs.weather.conditions import ConditionsConfig
+from metegs.weather.degrade import FAMILIES
 
 CLASS_TARGET_MM_H: dict[str, float] = {
     "light": math.sqrt(0.1 * 2.5),
@@ -55,7 +55,7 @@ def class_bounds(name: str) -> tuple[float, float]:
 @lru_cache(maxsize=8)
 def _load(path: str, reader: str | None):
     """(table, reader options) of a record, read once per process (PRSA files take seconds)."""
-    from metegs.synth.conditions import load_record
+    from metegs.meteo.theta_plan import load_record
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # reader notes about unreconcilable periods are not ours to report
@@ -181,7 +181,7 @@ class ConditionSpec:
     ``{record, time}``, or ``{visibility_m: X, explicit: true}``; optional ``reader``, ``station``."""
     family: str = "physical"
     """Weather generator of the degraded photos: ``physical`` (metegs's weather models from θ) or ``independent``
-    (`metegs.synth.independent`, made without them); the record sets training's θ either way."""
+    (`metegs.weather.independent`, made without them); the record sets training's θ either way."""
 
     def __post_init__(self) -> None:
         if self.family not in FAMILIES:

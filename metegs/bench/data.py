@@ -40,8 +40,7 @@ def degraded_dataset(
     console=None,
 ) -> tuple[Path, dict]:
     """(folder, weather.json) of the degraded copy of a scene under ``condition`` (written unless cached)."""
-    from metegs.cli.synth import SynthArgs
-    from metegs.cli.synth import main as synth_main
+    from metegs.synth.pipeline import SynthConfig, synthesise
 
     target = Path(target)
     done = target / "weather.json"
@@ -49,7 +48,7 @@ def degraded_dataset(
         return target, json.loads(done.read_text())
     c = condition.conditions
     explicit = c.record is None
-    args = SynthArgs(
+    args = SynthConfig(
         output=target,
         data=data,
         parser=parser,
@@ -72,7 +71,7 @@ def degraded_dataset(
             args = dataclasses.replace(args, **synth_options)
         except TypeError as exc:
             raise DataError(None, f"synth options {sorted(synth_options)}: {exc}") from exc
-    synth_main(args, console)
+    synthesise(args, console)
     return target, json.loads(done.read_text())
 
 
@@ -109,7 +108,8 @@ def restored_dataset(
     from metegs.data.images import load_image, resize_image
     from metegs.data.parsers.base import parse_scene
     from metegs.data.scene import SceneData
-    from metegs.synth.writers import DatasetWriter, staged_output
+    from metegs.files import staged_output
+    from metegs.synth.writers import DatasetWriter
 
     target = Path(target)
     done = target / "restore.json"

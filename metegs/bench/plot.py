@@ -13,7 +13,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from metegs.config import atomic_write_bytes
+from metegs.files import atomic_write_bytes
 
 _FONT = cv2.FONT_HERSHEY_SIMPLEX
 PALETTE_BGR = (

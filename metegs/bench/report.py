@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from metegs.bench.plot import Series, write_line_chart
-from metegs.config import atomic_write_text
+from metegs.files import atomic_write_text
 
 HIGHER_IS_BETTER = {"psnr": True, "ssim": True, "lpips": False, "time_seconds": False, "render_fps": True}
 FORMATS = {"psnr": "{:.2f}", "ssim": "{:.4f}", "lpips": "{:.4f}", "time_seconds": "{:.1f}", "render_fps": "{:.1f}"}

@@ -35,8 +35,9 @@ from rich.console import Console
 from metegs.bench.conditions import ResolvedCondition, resolve_condition
 from metegs.bench.memory import sync
 from metegs.bench.suite_config import MethodSpec, SceneSpec, SuiteConfig
-from metegs.config import apply_overrides, atomic_write_text, to_dict
+from metegs.config import apply_overrides, to_dict
 from metegs.errors import ConfigError, MetegsError
+from metegs.files import atomic_write_text
 
 RESULT_KEYS = ("psnr", "ssim", "lpips", "lpips_reason", "num_gaussians", "train_seconds", "steps", "reference")
 

@@ -21,8 +21,8 @@ from rich.table import Table
 
 from metegs.bench.steal import StealMeter
 from metegs.cli import run_cli
-from metegs.config import atomic_write_text
 from metegs.errors import ConfigError
+from metegs.files import atomic_write_text
 from metegs.render.select import usable_backends
 from metegs.validate import NON_NEGATIVE, Range, check_config
 

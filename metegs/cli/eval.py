@@ -11,9 +11,9 @@ import tyro
 from rich.console import Console
 
 from metegs.cli import run_cli
-from metegs.config import write_result
 from metegs.engine.run import run_folder
 from metegs.errors import MetegsError
+from metegs.files import write_result
 
 
 @dataclass

@@ -73,7 +73,7 @@ class Summary:
     """Exposure time for the mapped N_rain in the plot, s."""
 
     def run(self, console: Console) -> Path:
-        from metegs.config import atomic_write_bytes
+        from metegs.files import atomic_write_bytes
         from metegs.meteo.plot import render_summary_png
 
         table = load_table(self.file, self.reader, self.set)

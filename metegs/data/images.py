@@ -153,7 +153,7 @@ def resize_image(img: np.ndarray, width: int, height: int) -> np.ndarray:
 
 def save_image(path: Path, img) -> None:
     """Write an RGB image in [0, 1] (HxWx3 numpy array or tensor) as 8-bit PNG/JPEG, atomically (temp file + rename)."""
-    from metegs.config import atomic_write_bytes
+    from metegs.files import atomic_write_bytes
 
     arr = img.detach().cpu().numpy() if hasattr(img, "detach") else np.asarray(img)
     arr = (np.clip(arr, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)

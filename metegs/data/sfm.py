@@ -23,7 +23,7 @@ import numpy as np
 
 from metegs.data.images import load_mask, read_image_bytes
 from metegs.errors import ConfigError, DataError
-from metegs.synth.writers import staged_output
+from metegs.files import staged_output
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp")
 """File types taken from the photo folder (case-insensitive)."""

@@ -25,8 +25,8 @@ from pathlib import Path
 import numpy as np
 
 from metegs.cameras import Cameras
-from metegs.config import atomic_write_bytes
 from metegs.data.sfm import SfmOptions, _extract, _match, _pycolmap, _quiet
+from metegs.files import atomic_write_bytes
 
 CACHE_DIR = ".metegs_points"
 """Folder, inside the scene folder, of the cached triangulations."""

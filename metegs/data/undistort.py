@@ -17,9 +17,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from metegs.config import atomic_output, scene_cache
+from metegs.config import scene_cache
 from metegs.data.images import load_image
 from metegs.errors import DataError
+from metegs.files import atomic_output
 
 CACHE_DIR = ".metegs_undistorted"
 """Folder (inside the scene) holding undistorted copies of images with distorted camera models."""

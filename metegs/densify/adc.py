@@ -14,7 +14,7 @@ from typing import Annotated
 import torch
 
 from metegs.config import InstantiateConfig
-from metegs.engine.optim import append_rows, select_rows
+from metegs.densify.surgery import append_rows, select_rows
 from metegs.gaussians.model import GaussianModel, inverse_sigmoid
 from metegs.render.base import RenderOutput
 from metegs.validate import FRACTION, NON_NEGATIVE, POSITIVE, Range

@@ -35,7 +35,7 @@ import numpy as np
 import torch
 
 from metegs.config import InstantiateConfig
-from metegs.engine.optim import append_rows
+from metegs.densify.surgery import append_rows
 from metegs.errors import ConfigError
 from metegs.gaussians.model import GaussianModel, inverse_sigmoid
 

@@ -15,8 +15,8 @@ from typing import Any
 
 import torch
 
-from metegs.config import atomic_output
 from metegs.errors import DataError
+from metegs.files import atomic_output
 from metegs.gaussians.sh import MAX_SH_DEGREE
 
 REQUIRED = ("step", "params", "sh_degree")

@@ -8,8 +8,8 @@ from dataclasses import replace
 from rich.console import Console
 from rich.table import Table
 
-from metegs.config import atomic_write_text
 from metegs.engine.config import TrainConfig
+from metegs.files import atomic_write_text
 
 METRIC_KEYS = ("psnr", "ssim", "lpips", "streak_energy", "contrast_ratio", "num_gaussians", "train_seconds")
 

@@ -3,12 +3,19 @@
 from __future__ import annotations
 
 import warnings
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from metegs.config import apply_overrides, load_yaml
 from metegs.errors import ConfigError, DataError
 from metegs.registry import registry
+
+if TYPE_CHECKING:  # this module is imported by metegs-train before torch may load (the viewer's thread settings)
+    import numpy as np
+
+    from metegs.data.scene import SceneData
 
 
 def run_folder(path: Path) -> Path:
@@ -108,3 +115,57 @@ def turn_back_if_upright(trainer, ply: Path) -> None:
             f"against {as_is:.3g}): turned back (a metegs scene.ply saved by another tool?)",
             stacklevel=3,
         )
+
+
+MIN_ALPHA = 0.5
+"""Rendered pixels with less accumulated opacity have unknown depth (they look into the distance)."""
+
+
+def cameras_match(a, b, atol: float = 1e-4) -> bool:
+    """Same number of views, same poses and the same field of view (sizes may differ)."""
+    import torch
+
+    if len(a) != len(b):
+        return False
+    same_pose = torch.allclose(a.camera_to_worlds.cpu(), b.camera_to_worlds.cpu(), atol=atol)
+    fov_a, fov_b = a.fx.cpu() / a.width.cpu(), b.fx.cpu() / b.width.cpu()
+    return bool(same_pose and torch.allclose(fov_a, fov_b, rtol=1e-3))
+
+
+def depths_from_run(
+    run_dir: Path,
+    scene: SceneData,
+    checkpoint: Path | None = None,
+    progress: Callable[[int], None] | None = None,
+    device: str | None = None,
+) -> tuple[list[np.ndarray], str]:
+    """Depth of every view of ``scene`` rendered from a trained run at the scene's image sizes.
+
+    Returns (depths [H, W] float32 in scene units with NaN where the render's opacity is below
+    ``MIN_ALPHA``, a description of the source). The run must have been trained on the same cameras.
+    """
+    import torch
+
+    from metegs.render.base import RenderSettings
+
+    run_dir = Path(run_dir)
+    trainer = load_run(run_dir, checkpoint, device=device)
+    if not cameras_match(trainer.scene.cameras, scene.cameras):
+        raise DataError(
+            run_dir,
+            f"the run was trained on other cameras ({len(trainer.scene.cameras)} views, data "
+            f"{trainer.config.data}) than the scene to degrade ({len(scene)} views, {scene.source}); "
+            "give the run of this dataset",
+        )
+    model = trainer.model.activated()
+    settings = RenderSettings(background=(0.0, 0.0, 0.0), sh_degree=trainer.model.active_sh_degree)
+    depths = []
+    with torch.no_grad():
+        for i in range(len(scene)):
+            out = trainer.rasterizer.render(model, scene.cameras[i].to(trainer.device), settings)
+            d = torch.where(out.alpha >= MIN_ALPHA, out.depth, torch.full_like(out.depth, float("nan")))
+            depths.append(d.float().cpu().numpy())
+            if progress is not None:
+                progress(i)
+    ckpt = checkpoint or "latest checkpoint"
+    return depths, f"rendered from run {run_dir.resolve()} ({trainer.config.method}, {ckpt}, step {trainer.step})"

@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from metegs import __version__
-from metegs.config import absolute_paths, atomic_write_text, save_yaml, write_result
+from metegs.config import absolute_paths, save_yaml
 from metegs.data.config import auto_max_side
 from metegs.data.dataset import Dataset
 from metegs.data.parsers.base import parse_scene
@@ -34,6 +34,7 @@ from metegs.engine.init import random_points_in_view_overlap, scene_extent
 from metegs.engine.optim import make_optimizers, means_lr_at
 from metegs.engine.progress import TrainProgress
 from metegs.errors import ConfigError, DataError, Interrupted
+from metegs.files import atomic_write_text, write_result
 from metegs.gaussians.model import GaussianModel
 from metegs.meteo import Theta
 from metegs.render import RenderOutput, RenderSettings, make_rasterizer
@@ -195,8 +196,8 @@ class Trainer:
         kinds = self.degrade_kinds(scene)
         if not kinds:
             return scene
-        from metegs.synth.degrade import degrade_scene
         from metegs.weather.conditions import describe, describe_conditions, scene_metres_per_unit
+        from metegs.weather.degrade import degrade_scene
 
         if scene.images is None and scene.image_paths is None:
             raise ConfigError("--degrade needs the scene's images")

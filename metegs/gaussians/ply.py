@@ -27,8 +27,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from metegs.config import atomic_output
 from metegs.errors import DataError
+from metegs.files import atomic_output
 from metegs.gaussians.model import PARAM_NAMES, GaussianModel
 
 _PLY_TYPES = {

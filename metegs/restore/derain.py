@@ -218,7 +218,7 @@ class KangDerain:
 
     def decompose(self, high: np.ndarray, p: int) -> tuple[np.ndarray, dict]:
         """The geometric (non-rain) part of the high frequencies [H, W] and what was found."""
-        from metegs.synth.degrade import single_thread
+        from metegs.render.cpu_backend import single_thread
 
         c = self.config
         rng = np.random.default_rng(c.seed)

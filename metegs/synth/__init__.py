@@ -1,11 +1,7 @@
-"""Weather synthesis: degrade a scene's views with rain, fog and lens drops from θ, and write degraded datasets.
+"""Degraded datasets: `metegs-synth`'s pipeline (a scene, its depth, θ from a met record or explicit values, the
+weather applied by `metegs.weather.degrade`, a copy written in the scene's own format with the clean images
+alongside, weather.json and a contact sheet).
 
-    from metegs.synth import degrade_scene
-    rainy, records = degrade_scene(scene, theta, kinds="rain+fog", seed=0)
-
-`metegs-synth` (metegs/cli/synth.py) drives it from a met record and writes a degraded copy of a dataset.
+The weather itself is applied in memory by `metegs.weather.degrade.degrade_scene` (used by training's
+``--degrade``); this package writes it out.
 """
-
-from metegs.synth.degrade import KINDS, DegradedView, degrade_scene, iter_degraded_views, parse_kinds
-
-__all__ = ["KINDS", "DegradedView", "degrade_scene", "iter_degraded_views", "parse_kinds"]

@@ -21,11 +21,7 @@ interrupted run leaves no half-written dataset.
 from __future__ import annotations
 
 import json
-import os
 import shutil
-import sys
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path, PurePosixPath
 
 import cv2
@@ -39,57 +35,6 @@ from metegs.errors import ConfigError, DataError
 
 JPEG_QUALITY = 95
 """Quality of degraded JPEG images (the format of the source is kept)."""
-
-
-@contextmanager
-def staged_output(output: Path, overwrite: bool = False) -> Iterator[Path]:
-    """Yield a temp folder next to ``output``; on success it replaces ``output`` by renames, on error it is removed."""
-    output = Path(output)
-    if output.exists() and not overwrite:
-        raise ConfigError(f"{output} exists; choose another --output or pass --overwrite")
-    output.parent.mkdir(parents=True, exist_ok=True)
-    remove_dead_stages(output)
-    tmp = output.parent / f".{output.name}.partial-{os.getpid()}"
-    if tmp.exists():
-        shutil.rmtree(tmp)
-    tmp.mkdir()
-    try:
-        yield tmp
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    old = None
-    if output.exists():
-        old = output.parent / f".{output.name}.old-{os.getpid()}"
-        os.replace(output, old)
-    os.replace(tmp, output)
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True) if old.is_dir() else old.unlink(missing_ok=True)
-
-
-def remove_dead_stages(output: Path) -> list[Path]:
-    """Remove the ``.partial-PID`` / ``.old-PID`` folders beside ``output`` whose process no longer runs (a killed
-    `staged_output`), saying so on stderr; those of live processes are left alone. Returns the removed paths."""
-    removed = []
-    for stage in output.parent.glob(f".{output.name}.*-*"):
-        kind, _, pid = stage.name[len(output.name) + 2 :].rpartition("-")
-        if kind not in ("partial", "old") or not pid.isdigit() or process_alive(int(pid)):
-            continue
-        shutil.rmtree(stage, ignore_errors=True) if stage.is_dir() else stage.unlink(missing_ok=True)
-        print(f"removed {stage}, left by a run (process {pid}) that was killed before it finished", file=sys.stderr)
-        removed.append(stage)
-    return removed
-
-
-def process_alive(pid: int) -> bool:
-    """Whether a process ``pid`` exists (it may belong to another user)."""
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
 
 
 def encode_image(image: np.ndarray, suffix: str) -> bytes:

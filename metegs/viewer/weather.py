@@ -166,7 +166,7 @@ class MetTimeline:
 
     def __init__(self, conditions: ConditionsConfig):
         from metegs.meteo import DEFAULT_CAPTURE_TIME, parse_time
-        from metegs.synth.conditions import load_record
+        from metegs.meteo.theta_plan import load_record
 
         self.source = "shipped storm (Beijing, 11 Aug 2013)" if conditions.record is None else str(conditions.record)
         self.table, _ = load_record(conditions.record)

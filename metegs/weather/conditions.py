@@ -120,7 +120,7 @@ def theta_camera(
 
 def theta_for_cameras(config: ConditionsConfig, cameras: Cameras, metres_per_unit: float) -> Theta:
     """θ of the configured weather for a scene's cameras: explicit values, else the record at its time."""
-    from metegs.synth.conditions import plan_from_record, plan_from_values
+    from metegs.meteo.theta_plan import plan_from_record, plan_from_values
 
     spec = theta_camera(cameras, metres_per_unit, config.exposure_s, config.capture_width_px)
     if config.precip_mm_h is not None:

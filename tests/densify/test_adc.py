@@ -30,9 +30,16 @@ def fake_render(model, grad2d, width=100, height=50):
     n = len(model)
     means2d = torch.zeros(n, 2, requires_grad=True)
     means2d.grad = torch.as_tensor(grad2d, dtype=torch.float32)
-    return RenderOutput(rgb=torch.zeros(height, width, 3), alpha=torch.zeros(height, width),
-                        depth=torch.zeros(height, width), radii=torch.full((n,), 5, dtype=torch.int32),
-                        means2d=means2d, num_intersections=0, width=width, height=height)
+    return RenderOutput(
+        rgb=torch.zeros(height, width, 3),
+        alpha=torch.zeros(height, width),
+        depth=torch.zeros(height, width),
+        radii=torch.full((n,), 5, dtype=torch.int32),
+        means2d=means2d,
+        num_intersections=0,
+        width=width,
+        height=height,
+    )
 
 
 def test_schedule_is_a_fraction_of_the_run():

@@ -3,15 +3,18 @@
 import torch
 from torch import nn
 
-from metegs.engine.optim import adam, append_rows, select_rows
+from metegs.densify.surgery import append_rows, select_rows
+from metegs.engine.optim import adam
 
 
 def _params(seed: int) -> nn.ParameterDict:
     g = torch.Generator().manual_seed(seed)
-    return nn.ParameterDict({
-        "means": nn.Parameter(torch.randn(50, 3, generator=g)),
-        "shN": nn.Parameter(torch.randn(50, 15, 3, generator=g)),
-    })
+    return nn.ParameterDict(
+        {
+            "means": nn.Parameter(torch.randn(50, 3, generator=g)),
+            "shN": nn.Parameter(torch.randn(50, 15, 3, generator=g)),
+        }
+    )
 
 
 def _grads(params: nn.ParameterDict, step: int) -> None:

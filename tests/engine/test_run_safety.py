@@ -20,7 +20,7 @@ from metegs.data.config import DatasetConfig, SyntheticSceneConfig
 from metegs.engine.checkpoint import load_checkpoint
 from metegs.engine.config import TrainConfig
 from metegs.errors import Interrupted, TrainingDiverged
-from metegs.synth.writers import remove_dead_stages
+from metegs.files import remove_dead_stages
 
 TINY = DatasetConfig(test_every=3, synthetic=SyntheticSceneConfig(width=32, height=24, num_views=6, num_points=200))
 
@@ -157,7 +157,7 @@ def test_resume_with_another_split_of_the_same_scene_is_accepted(tmp_path):
 
 
 def test_every_output_gets_the_permissions_the_umask_gives(tmp_path):
-    from metegs.config import NEW_FILE_MODE
+    from metegs.files import NEW_FILE_MODE
 
     mask = os.umask(0o022)
     os.umask(mask)
@@ -174,7 +174,7 @@ def test_a_stricter_umask_is_honoured(tmp_path):
     code = (
         "import os; os.umask(0o027)\n"
         "from pathlib import Path\n"
-        "from metegs.config import atomic_write_text\n"
+        "from metegs.files import atomic_write_text\n"
         "from metegs.data.images import save_image\n"
         "import numpy as np\n"
         f"atomic_write_text(Path({str(tmp_path)!r}) / 'a.json', '{{}}')\n"

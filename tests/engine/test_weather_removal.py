@@ -1,7 +1,7 @@
 """Blind MeteGS against 3DGS on weather that metegs's models did not make: its clean render is cleaner.
 
 The built-in scene (textured ground, objects, hills and sky) is degraded by the independent family
-(`metegs.synth.independent`: 2D streak layers in the style of Rain100H and a fog that thins with height, varies in
+(`metegs.weather.independent`: 2D streak layers in the style of Rain100H and a fog that thins with height, varies in
 patches and per channel, with an airlight that depends on the direction), heavy rain and 300 m visibility. Both
 methods see only those photos; MeteGS also gets the met values, never the clean photos. Judged on held-out views
 against the clean references: less streak energy, a contrast nearer the reference's, higher PSNR and SSIM.

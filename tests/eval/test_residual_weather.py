@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from metegs.eval.residual_weather import contrast_ratio, streak_energy
-from metegs.synth.independent import rain_view
+from metegs.weather.independent import rain_view
 
 
 def _scene(seed=0) -> torch.Tensor:

@@ -9,7 +9,7 @@ from metegs.errors import DataError
 from metegs.meteo import read_observations
 from metegs.meteo.readers.csv_reader import csv_options, detect_columns
 from metegs.meteo.storm import default_storm_path
-from metegs.synth.conditions import load_record
+from metegs.meteo.theta_plan import load_record
 
 
 def write(tmp_path, text: str, name: str = "station.csv"):

@@ -79,7 +79,7 @@ def tiny_scene():
     ],
 )
 def test_synthesised_weather_stays_finite_and_in_range(tiny_scene, rate, vis, kinds):
-    from metegs.synth.degrade import degrade_scene
+    from metegs.weather.degrade import degrade_scene
 
     th = theta_for_cameras(ConditionsConfig(precip_mm_h=rate, visibility_m=vis), tiny_scene.cameras, 10.0)
     degraded, records = degrade_scene(tiny_scene, th, kinds=kinds, seed=0, metres_per_unit=10.0)

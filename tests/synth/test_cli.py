@@ -9,20 +9,20 @@ import pytest
 import torch
 from rich.console import Console
 
-from metegs.cli.synth import SynthArgs, main
 from metegs.data.config import DatasetConfig, SyntheticSceneConfig
 from metegs.data.parsers.base import parse_scene
 from metegs.errors import ConfigError, DataError
 from metegs.meteo import default_storm_path
 from metegs.synth import writers
+from metegs.synth.pipeline import SynthConfig, synthesise
 
 TINY = DatasetConfig(synthetic=SyntheticSceneConfig(width=48, height=36, num_views=4, num_points=50))
 
 
 def run(output: Path, **kw) -> Path:
     kw.setdefault("capture_width_px", 0)  # θ at the tiny stored size: few streaks, fast tests
-    args = SynthArgs(output=output, dataset=kw.pop("dataset", TINY), **kw)
-    return main(args, Console(file=open("/dev/null", "w")))
+    args = SynthConfig(output=output, dataset=kw.pop("dataset", TINY), **kw)
+    return synthesise(args, Console(file=open("/dev/null", "w")))
 
 
 def images(folder: Path) -> dict[str, bytes]:
@@ -151,8 +151,9 @@ def write_llff(root: Path, n: int = 3) -> None:
 
 
 def test_llff_needs_depth_and_is_written_as_llff(tmp_path):
-    from metegs.synth.degrade import degrade_scene
-    from metegs.synth.writers import DatasetWriter, staged_output
+    from metegs.files import staged_output
+    from metegs.synth.writers import DatasetWriter
+    from metegs.weather.degrade import degrade_scene
 
     src = tmp_path / "scene"
     src.mkdir()
@@ -203,10 +204,11 @@ def test_a_distorted_capture_is_degraded_as_the_pinhole_views_it_trains_on(tmp_p
     """Frames with lens distortion are read through undistorted copies; their degraded copy is a PINHOLE nerfstudio
     dataset of those views (weather drawn on a distorted original would need distorting too), and reads back with
     the same cameras."""
+    from metegs.files import staged_output
     from metegs.meteo import theta_from_values
-    from metegs.synth.degrade import degrade_scene
-    from metegs.synth.writers import DatasetWriter, reads_cached_copies, staged_output
+    from metegs.synth.writers import DatasetWriter, reads_cached_copies
     from metegs.weather.conditions import camera_spec
+    from metegs.weather.degrade import degrade_scene
 
     src = tmp_path / "scene"
     (src / "images").mkdir(parents=True)

@@ -10,9 +10,8 @@ from metegs.data.config import SyntheticSceneConfig
 from metegs.data.parsers.synthetic import build_scene
 from metegs.errors import ConfigError, DataError
 from metegs.meteo import theta_from_values
-from metegs.synth import degrade_scene, iter_degraded_views
-from metegs.synth.degrade import UNKNOWN_DEPTH, fill_unknown_depth
 from metegs.weather.conditions import camera_spec
+from metegs.weather.degrade import UNKNOWN_DEPTH, degrade_scene, fill_unknown_depth, iter_degraded_views
 from metegs.weather.fog_analytic import fog_composite, ray_lengths
 
 # one P per WMO class: drizzle, light, moderate, heavy, violent rain

@@ -7,14 +7,14 @@ import pytest
 import torch
 from rich.console import Console
 
-from metegs.cli.synth import SynthArgs, main
 from metegs.data.config import DatasetConfig, SyntheticSceneConfig
 from metegs.data.parsers.base import parse_scene
 from metegs.densify.adc import ADCConfig
 from metegs.engine.config import TrainConfig
-from metegs.engine.run import load_run
+from metegs.engine.run import depths_from_run, load_run
 from metegs.errors import DataError
-from metegs.synth.depth import depths_from_run, guess_metres_per_unit
+from metegs.synth.depth import guess_metres_per_unit
+from metegs.synth.pipeline import SynthConfig, synthesise
 
 TINY = DatasetConfig(synthetic=SyntheticSceneConfig(width=48, height=36, num_views=5, num_points=600))
 
@@ -59,8 +59,8 @@ def test_depth_rendered_from_a_run_matches_the_scene(run_dir):
 
 
 def test_cli_depth_from_a_run_uses_its_dataset(run_dir, tmp_path):
-    out = main(
-        SynthArgs(output=tmp_path / "o", depth_from=run_dir, precip_mm_h=20.0, rain_far_m=4.0, exposure_s=1 / 30),
+    out = synthesise(
+        SynthConfig(output=tmp_path / "o", depth_from=run_dir, precip_mm_h=20.0, rain_far_m=4.0, exposure_s=1 / 30),
         Console(file=open("/dev/null", "w")),
     )
     weather = json.loads((out / "weather.json").read_text())

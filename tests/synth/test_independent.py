@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 import torch
 
-import metegs.synth.independent as ind
+import metegs.weather.independent as ind
 from metegs.cameras import Cameras
-from metegs.cli.synth import SynthArgs, main
 from metegs.data.config import DatasetConfig, SyntheticSceneConfig
 from metegs.meteo.aggregate import WeatherConditions
+from metegs.synth.pipeline import SynthConfig, synthesise
 
 
 def test_imports_nothing_of_metegs_weather_models_or_mapping():
@@ -119,9 +119,9 @@ TINY = DatasetConfig(synthetic=SyntheticSceneConfig(width=64, height=48, num_vie
 
 
 def _synth(tmp_path, name, **kw):
-    args = SynthArgs(output=tmp_path / name, dataset=TINY, preview_views=2, precip_mm_h=20.0, visibility_m=300.0,
+    args = SynthConfig(output=tmp_path / name, dataset=TINY, preview_views=2, precip_mm_h=20.0, visibility_m=300.0,
                      kinds="rain+fog", **kw)  # fmt: skip
-    return main(args)
+    return synthesise(args)
 
 
 def test_metegs_synth_writes_the_independent_family(tmp_path):
@@ -142,8 +142,8 @@ def test_metegs_synth_writes_the_independent_family(tmp_path):
 
 def test_in_memory_degrade_takes_the_family():
     from metegs.data.parsers.base import parse_scene
-    from metegs.synth.degrade import degrade_scene
     from metegs.weather.conditions import ConditionsConfig, theta_for_cameras
+    from metegs.weather.degrade import degrade_scene
 
     scene = parse_scene(None, None, TINY)
     theta = theta_for_cameras(ConditionsConfig(precip_mm_h=20.0, visibility_m=300.0), scene.cameras, 10.0)

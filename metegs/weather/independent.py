@@ -1,6 +1,6 @@
 """The independent degradation family: weather made without metegs's weather models or θ mapping.
 
-metegs's own family (`metegs.synth.degrade`) renders the very rain-streak Gaussians and fog model that training
+metegs's own family (`metegs.weather.degrade`) renders the very rain-streak Gaussians and fog model that training
 then fits, so a method judged on it can fit its own generator (the inverse crime). This family is written apart
 from them, in the style of the public deraining and dehazing datasets, and is driven only by the met conditions
 (WMO rain class, visibility, wind) that also set training's θ:

@@ -20,7 +20,6 @@ from __future__ import annotations
 import copy
 import dataclasses
 from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -32,6 +31,7 @@ from metegs.errors import ConfigError, DataError
 from metegs.meteo.mapping import Theta
 from metegs.registry import registry
 from metegs.render.base import RenderOutput, RenderSettings
+from metegs.render.cpu_backend import single_thread
 from metegs.weather.airlight import estimate_airlight
 from metegs.weather.base import WeatherModel, WeatherScene
 from metegs.weather.compose import build_weather_models
@@ -45,7 +45,7 @@ else the model's forced default). Lens drops are a property of one camera's glas
 they hide large parts of the view: they are added only when asked for."""
 
 FAMILIES = ("physical", "independent")
-"""Degradation families: metegs's own weather models from θ, or `metegs.synth.independent` (a benchmark that the
+"""Degradation families: metegs's own weather models from θ, or `metegs.weather.independent` (a benchmark that the
 method cannot fit with its own generator)."""
 
 UNKNOWN_DEPTH = 1e9
@@ -131,7 +131,7 @@ def iter_degraded_views(
     family: str = "physical",
 ) -> Iterator[DegradedView]:
     """`degrade_scene` one view at a time (for progress bars); ``views`` picks a subset (default: all).
-    ``family``: ``physical`` (metegs's weather models from θ) or ``independent`` (`metegs.synth.independent`:
+    ``family``: ``physical`` (metegs's weather models from θ) or ``independent`` (`metegs.weather.independent`:
     made without them, from θ's met conditions only)."""
     wanted = parse_kinds(kinds)
     n = len(scene)
@@ -152,7 +152,7 @@ def iter_degraded_views(
     if family == "physical":
         engine = _Engine(scene, thetas, wanted, seed, mpu, clean)
     elif family == "independent":
-        from metegs.synth.independent import IndependentEngine
+        from metegs.weather.independent import IndependentEngine
 
         engine = IndependentEngine(scene, [t.conditions for t in thetas], wanted, seed, mpu)
     else:
@@ -163,18 +163,6 @@ def iter_degraded_views(
         with single_thread():
             degraded, record = engine.view(i, image, depth)
         yield DegradedView(i, degraded, image, record)
-
-
-@contextmanager
-def single_thread() -> Iterator[None]:
-    """Run torch on one thread inside (restored after): a view's work is small, and OpenMP threads that
-    busy-wait for a core taken by another process slow it down up to 20x on a loaded 2-core machine."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before)
 
 
 # ------------------------------------------------------------------------------------------------ internals
