@@ -18,12 +18,13 @@ from dataclasses import dataclass
 import torch
 
 from metegs.bench.memory import PeakMemory, sync
+from metegs.bench.peak import measure_peak_gflops
 from metegs.cameras import Cameras
 from metegs.engine.allocator import keep_freed_memory
 from metegs.gaussians.model import GaussianSet
 from metegs.registry import registry
 from metegs.render.base import RenderSettings
-from metegs.render.cpu_backend import CpuRasterizer, measure_peak_gflops, thread_split
+from metegs.render.cpu_backend import CpuRasterizer, thread_split
 
 PEAK_GFLOPS = 330.0
 """Peak float32 FLOP/s of the 2-core AVX-512 CI machine (research note: 2 x 2.6 GHz x 2 FMA x 16 lanes x 2)."""

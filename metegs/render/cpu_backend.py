@@ -5,10 +5,10 @@ Three ops, each the equivalent of a torch reference stage (and tested against it
 `gaussian_colors`), ``csrc/binning.cpp`` (depth-sorted tile lists with an exact ellipse-tile test;
 reference: `bin_gaussians`) and ``csrc/composite.cpp`` (tile compositing, `CompositeTiles`; reference:
 `torch_backend.composite_tiles`); beside them ``csrc/ssim.cpp``, the training loss's SSIM map with its backward
-(`metegs.losses.fused_ssim`), and ``csrc/peak.cpp``, the float32 multiply-add throughput of the kernels' threads
-(`measure_peak_gflops`, the raster benchmark's measured floor). The extension is compiled with `torch.utils.cpp_extension` on first use (about a minute)
+(`metegs.losses.fused_ssim`). The extension is compiled with `torch.utils.cpp_extension` on first use (about a minute)
 and cached in ``~/.cache/metegs/torch_extensions/<torch version>/<cpu tag>/`` (``$XDG_CACHE_HOME``
-is honoured, ``METEGS_EXTENSIONS_DIR`` overrides the whole path); later processes only load it.
+is honoured, ``METEGS_EXTENSIONS_DIR`` overrides the whole path); later processes only load it. x86 intrinsics are
+used only where the compiler targets them, and never with ``METEGS_CPU_PORTABLE=1`` (`machine_cflags`).
 When it cannot be built, `CpuRasterizer.available` is False (with one warning saying why), so
 ``backend=auto`` falls back to ``torch``, and `CpuRasterizer.render` raises `CpuExtensionError`.
 """
@@ -22,7 +22,6 @@ import platform
 import re
 import subprocess
 import sys
-import threading
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -41,29 +40,37 @@ from metegs.render.pipeline import finish_render, resolve_sh_degree
 from metegs.render.tiles import TILE_SIZE, TileBins
 
 CSRC = Path(__file__).parent / "csrc"
-SOURCES = [
-    CSRC / name for name in ("bindings.cpp", "project.cpp", "binning.cpp", "composite.cpp", "ssim.cpp", "peak.cpp")
-]
+SOURCES = [CSRC / name for name in ("bindings.cpp", "project.cpp", "binning.cpp", "composite.cpp", "ssim.cpp")]
 HEADERS = [CSRC / "metegs_cpu.h", CSRC / "pool.h"]
 _TORCH_TAG = "".join(ch if ch.isalnum() else "_" for ch in torch.__version__)
 EXTENSION_NAME = f"metegs_cpu_composite_{_TORCH_TAG}"
 
-# -march=native: the compositing kernels work on 16-pixel tile rows as GCC vector types, which become
-# AVX-512 (or AVX2) instructions here. The binary is built on, and cached for, the machine that runs it;
-# the cache folder also carries a tag of the CPU model/flags so that a home directory shared between
-# different machines does not load a binary built for another CPU. -mprefer-vector-width=512 lets GCC use
-# zmm registers where the CPU has AVX-512 (ignored elsewhere). -ffp-contract=off keeps forward and backward
-# alphas bit-identical (see composite.cpp); -fno-trapping-math lets GCC if-convert (vectorise) the loops of
-# the other kernels (no FP exceptions are used). The kernels run on metegs' own pool (csrc/pool.h), or, called
-# from the main thread with torch's thread count, on torch's own OpenMP team: hence -fopenmp where torch runs on
-# GNU OpenMP (`openmp_flags`).
-CFLAGS = [
-    "-O3",
-    "-march=native",
-    "-mprefer-vector-width=512",
-    "-ffp-contract=off",
-    "-fno-trapping-math",
-]
+# -march=native (x86) / -mcpu=native (ARM): the compositing kernels work on 16-pixel tile rows as GCC vector types,
+# which become AVX-512 (or AVX2, NEON) instructions here. The binary is built on, and cached for, the machine that runs
+# it; the cache folder also carries a tag of the CPU model/flags so that a home directory shared between different
+# machines does not load a binary built for another CPU. -mprefer-vector-width=512 lets GCC use zmm registers where
+# the CPU has AVX-512. -ffp-contract=off keeps forward and backward alphas bit-identical (see composite.cpp);
+# -fno-trapping-math lets GCC if-convert (vectorise) the loops of the other kernels (no FP exceptions are used). The
+# kernels run on metegs' own pool (csrc/pool.h), or, called from the main thread with torch's thread count, on
+# torch's own OpenMP team: hence -fopenmp where torch runs on GNU OpenMP (`openmp_flags`).
+PORTABLE_ENV = "METEGS_CPU_PORTABLE"
+"""Set to 1 to build the kernels without x86 intrinsics or the machine's own instruction set (-DMETEGS_PORTABLE: the
+generic code that ARM machines compile), in a cache folder of its own; the test suite builds this variant too."""
+
+
+def machine_cflags(portable: bool | None = None) -> list[str]:
+    """Compiler flags of the kernels for this machine's architecture (``portable``: default from `PORTABLE_ENV`)."""
+    if portable is None:
+        portable = os.environ.get(PORTABLE_ENV, "") not in ("", "0")
+    common = ["-ffp-contract=off", "-fno-trapping-math"]
+    machine = platform.machine().lower()
+    if portable:
+        return ["-O3", *common, "-DMETEGS_PORTABLE"]
+    if machine in ("x86_64", "amd64"):
+        return ["-O3", "-march=native", "-mprefer-vector-width=512", *common]
+    if machine in ("aarch64", "arm64"):
+        return ["-O3", "-mcpu=native", *common]
+    return ["-O3", *common]
 
 
 class CpuExtensionError(MetegsError, RuntimeError):
@@ -72,9 +79,6 @@ class CpuExtensionError(MetegsError, RuntimeError):
 
 class CpuBackendWarning(UserWarning):
     """The ``cpu`` rasteriser is unavailable; ``auto`` uses ``torch`` instead."""
-
-
-_announced = threading.Event()  # the "compiling ..." message is printed once per process
 
 
 def _cpu_tag() -> str:
@@ -110,13 +114,14 @@ def build_directory(cflags: list[str] | None = None) -> Path:
     return user_cache("torch_extensions", _TORCH_TAG, f"{_cpu_tag()}-{digest}")
 
 
-def stage_sources(build_dir: Path) -> tuple[Path, bool]:
-    """(folder, changed): copies of the kernel sources in ``build_dir/src``, rewritten where their bytes differ from
-    the installation's. The build reads these copies, so its ninja file names no checkout's path."""
+def stage_sources(build_dir: Path, sources: list[Path] | None = None) -> tuple[Path, bool]:
+    """(folder, changed): copies of the sources (default: the kernels', `SOURCES`) and `HEADERS` in ``build_dir/src``,
+    rewritten where their bytes differ from the installation's. The build reads these copies, so its ninja file
+    names no checkout's path."""
     folder = Path(build_dir) / "src"
     folder.mkdir(parents=True, exist_ok=True)
     changed = False
-    for f in SOURCES + HEADERS:
+    for f in (SOURCES if sources is None else sources) + HEADERS:
         data, copy = f.read_bytes(), folder / f.name
         if not copy.is_file() or copy.read_bytes() != data:
             atomic_write_bytes(copy, data)
@@ -148,9 +153,9 @@ def openmp_flags() -> list[str]:
 
 
 def compile_flags() -> tuple[list[str], list[str]]:
-    """(compiler flags, linker flags) of the extension on this machine: `CFLAGS` plus `openmp_flags`."""
+    """(compiler flags, linker flags) of the extension on this machine: `machine_cflags` plus `openmp_flags`."""
     openmp = openmp_flags()
-    return CFLAGS + openmp, ["-pthread", *openmp]
+    return machine_cflags() + openmp, ["-pthread", *openmp]
 
 
 def _tail(text: str, lines: int = 25) -> str:
@@ -173,24 +178,6 @@ def _describe_build_failure(exc: Exception) -> str:
 def load_extension():
     """The compiled extension module (built on first use; raises `CpuExtensionError` if impossible)."""
     return EXTENSION.load()
-
-
-PEAK_PROBE_CHUNKS_PER_THREAD = 8
-"""Chunks of a peak probe per kernel thread, claimed dynamically as the kernels claim tiles."""
-
-
-def measure_peak_gflops(iterations: int = 20000) -> float:
-    """Float32 multiply-add throughput (GFLOP/s) of the ``cpu`` kernels' threads, now: the peak of the raster
-    benchmark's measured arithmetic floor. Runs ``iterations`` steps of 12 chains of 16-lane multiply-adds per chunk,
-    8 chunks per kernel thread (``csrc/peak.cpp``; about 0.5 ms at 2 x 115 GFLOP/s with the default), on the same
-    threads and scheduling as the kernels, so it slows down with them when other processes take the cores.
-    Raises `CpuExtensionError` if the chains' checksum shows that not all the counted work ran."""
-    ext = load_extension()
-    chunks = PEAK_PROBE_CHUNKS_PER_THREAD * ext.get_num_threads()
-    seconds, flops, checksum = ext.fma_throughput(chunks, int(iterations))
-    if checksum != flops / 2:  # one multiply-add (2 flops) per unit the accumulators reached, with a = b = 1
-        raise CpuExtensionError(f"fma_throughput: checksum {checksum} != {flops / 2}; the probe did not run its work")
-    return flops / seconds / 1e9
 
 
 def set_kernel_threads(n: int) -> None:
@@ -242,10 +229,12 @@ def single_thread() -> Iterator[None]:
         torch.set_num_threads(before)
 
 
-def _build():
+def build_extension(name: str, sources: list[Path], build_dir: Path, what: str):
+    """Compile (when its staged sources or flags changed) and load the extension ``name`` from ``sources`` and
+    `HEADERS` in ``build_dir``, under the build lock; ``what`` names it in the one-line message while it builds."""
     from torch.utils import cpp_extension
 
-    missing = [str(f) for f in SOURCES + HEADERS if not f.is_file()]
+    missing = [str(f) for f in sources + HEADERS if not f.is_file()]
     if missing:
         raise CpuExtensionError(f"source files missing from the installation: {', '.join(missing)}")
     try:
@@ -253,29 +242,30 @@ def _build():
     except RuntimeError as exc:
         raise CpuExtensionError("the `ninja` build tool is required (pip install ninja)") from exc
     cflags, ldflags = compile_flags()
-    build_dir = build_directory(cflags)
     with build_lock(build_dir):
-        src, changed = stage_sources(build_dir)
-        built, ninja_file = build_dir / f"{EXTENSION_NAME}.so", build_dir / "build.ninja"
+        src, changed = stage_sources(build_dir, sources)
+        built, ninja_file = build_dir / f"{name}.so", build_dir / "build.ninja"
         stale = (
             changed
             or not built.exists()
             or not ninja_file.exists()
             or " ".join(cflags) not in ninja_file.read_text(errors="replace")
         )
-        if stale and not _announced.is_set():
-            _announced.set()
-            print(f"compiling the metegs CPU rasteriser (first use, ~1 min) in {build_dir} ...",
-                  file=sys.stderr, flush=True)  # fmt: skip
+        if stale:
+            print(f"compiling {what} (first use, ~1 min) in {build_dir} ...", file=sys.stderr, flush=True)
         return cpp_extension.load(
-            name=EXTENSION_NAME,
-            sources=[str(src / f.name) for f in SOURCES],
+            name=name,
+            sources=[str(src / f.name) for f in sources],
             extra_include_paths=[str(src)],
             extra_ldflags=ldflags,
             extra_cflags=cflags,
             build_directory=str(build_dir),
             verbose=False,
         )
+
+
+def _build():
+    return build_extension(EXTENSION_NAME, SOURCES, build_directory(), "the metegs CPU rasteriser")
 
 
 EXTENSION = OptionalComponent(

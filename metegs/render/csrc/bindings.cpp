@@ -24,9 +24,6 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         py::arg("x"), py::arg("y"), py::arg("window"), py::arg("c1"), py::arg("c2"));
   m.def("ssim_backward", &metegs_cpu::ssim_backward, "backward of ssim_forward with respect to x (CPU)", nogil,
         py::arg("x"), py::arg("y"), py::arg("window"), py::arg("partials"), py::arg("g_map"));
-  m.def("fma_throughput", &metegs_cpu::fma_throughput,
-        "float32 multiply-adds on the kernels' threads -> [seconds, flops, checksum] (the machine's peak, measured)",
-        nogil, py::arg("chunks"), py::arg("iterations"), py::arg("a") = 1.0, py::arg("b") = 1.0);
   m.def("set_num_threads", [](int64_t n) { metegs::thread_override() = std::max<int64_t>(n, 0); },
         "threads of the metegs kernels called from this thread (0: torch's intra-op count)", py::arg("n"));
   m.def("get_num_threads", &metegs::num_threads, "threads of the metegs kernels called from this thread");

@@ -36,7 +36,6 @@
 #include <cmath>
 #include <cstdint>
 #include <cstring>
-#include <immintrin.h>
 #include <limits>
 #include <memory>
 #include <type_traits>
@@ -153,7 +152,7 @@ inline __attribute__((always_inline)) Vec<float> neg_exp(Vec<float> x) {
   const V pc = fmadd(splat<V>(1.6666665459e-1f), r, splat<V>(5.0000001201e-1f));
   const V p = fmadd(fmadd(pa, r2, pb), r2, pc);
   const V y = fmadd(p, r2, r + 1.0f);
-#if defined(__AVX512F__)
+#if METEGS_AVX512
   return (V)_mm512_scalef_ps((__m512)y, (__m512)n);  // y 2^n
 #else
   const Mask<float> bits = (__builtin_convertvector(n, Mask<float>) + 127) << 23;  // n in [-29, 0]: a normal 2^n
@@ -169,7 +168,7 @@ inline __attribute__((always_inline)) Vec<double> neg_exp(Vec<double> x) {
 // 1 / x per lane for x in [0.01, 1] (1 - alpha). AVX-512: the 14-bit estimate and one Newton step (relative
 // error about 1e-7, well under the gradients' tolerance; a division stalls the backward's row loop); else 1 / x.
 inline __attribute__((always_inline)) Vec<float> recip(Vec<float> x) {
-#if defined(__AVX512F__)
+#if METEGS_AVX512
   const Vec<float> r = (Vec<float>)_mm512_rcp14_ps((__m512)x);
   return fmadd(r, fmadd(-x, r, splat<Vec<float>>(1.0f)), r);  // r + r (1 - x r)
 #else

@@ -10,7 +10,19 @@
 #include <cstring>
 #include <limits>
 #include <vector>
-#if defined(__AVX512F__) || defined(__FMA__)
+// The only place that decides on x86 intrinsics: METEGS_AVX512 / METEGS_FMA where the compiler targets them, never
+// with -DMETEGS_PORTABLE (the generic code alone, as on ARM; the test suite builds and checks that variant).
+#if !defined(METEGS_PORTABLE) && defined(__AVX512F__)
+#define METEGS_AVX512 1
+#else
+#define METEGS_AVX512 0
+#endif
+#if !defined(METEGS_PORTABLE) && defined(__FMA__)
+#define METEGS_FMA 1
+#else
+#define METEGS_FMA 0
+#endif
+#if METEGS_AVX512 || METEGS_FMA
 #include <immintrin.h>
 #endif
 
@@ -24,9 +36,9 @@ typedef float Float16 __attribute__((vector_size(16 * sizeof(float))));
 // a * b + c per lane, rounded once where the CPU fuses it (AVX-512, or AVX2 with FMA), else rounded twice (the
 // extension is built with -ffp-contract=off: multiply-adds are fused only where this is called).
 inline __attribute__((always_inline)) Float16 fmadd16(Float16 a, Float16 b, Float16 c) {
-#if defined(__AVX512F__)
+#if METEGS_AVX512
   return (Float16)_mm512_fmadd_ps((__m512)a, (__m512)b, (__m512)c);
-#elif defined(__FMA__)
+#elif METEGS_FMA
   __m256 a2[2], b2[2], c2[2];
   std::memcpy(a2, &a, sizeof(a)), std::memcpy(b2, &b, sizeof(b)), std::memcpy(c2, &c, sizeof(c));
   for (int h = 0; h < 2; ++h) a2[h] = _mm256_fmadd_ps(a2[h], b2[h], c2[h]);
@@ -39,7 +51,7 @@ inline __attribute__((always_inline)) Float16 fmadd16(Float16 a, Float16 b, Floa
 
 // The first n (0..16) floats at src as a Float16, zeros after them (AVX-512: one masked load).
 inline __attribute__((always_inline)) Float16 load_first(const float* src, int64_t n) {
-#if defined(__AVX512F__)
+#if METEGS_AVX512
   return (Float16)_mm512_maskz_loadu_ps(static_cast<__mmask16>((1u << n) - 1), src);
 #else
   Float16 v{};
@@ -50,7 +62,7 @@ inline __attribute__((always_inline)) Float16 load_first(const float* src, int64
 
 // Stores lanes [0, n) of v at dst (AVX-512: one masked store).
 inline __attribute__((always_inline)) void store_first(float* dst, Float16 v, int64_t n) {
-#if defined(__AVX512F__)
+#if METEGS_AVX512
   _mm512_mask_storeu_ps(dst, static_cast<__mmask16>((1u << n) - 1), (__m512)v);
 #else
   std::memcpy(dst, &v, n * sizeof(float));
@@ -122,9 +134,5 @@ std::vector<at::Tensor> finish_backward(at::Tensor alpha, at::Tensor depth_sum, 
 std::vector<at::Tensor> ssim_forward(at::Tensor x, at::Tensor y, at::Tensor window, double c1, double c2);
 // -> gradient of x [B, H, W, C] given the map's gradient g_map [B, H, W, C].
 at::Tensor ssim_backward(at::Tensor x, at::Tensor y, at::Tensor window, at::Tensor partials, at::Tensor g_map);
-
-// peak.cpp: the float32 multiply-add throughput of the kernels' threads (the arithmetic floor's peak, measured).
-// -> {seconds, flops, checksum}; see fma_throughput's comment.
-std::vector<double> fma_throughput(int64_t chunks, int64_t iterations, double a, double b);
 
 }  // namespace metegs_cpu

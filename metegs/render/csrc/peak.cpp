@@ -53,3 +53,12 @@ std::vector<double> fma_throughput(int64_t chunks, int64_t iterations, double a,
 }
 
 }  // namespace metegs_cpu
+
+// An extension of its own, built only by the raster benchmark (`metegs.bench.peak`), never part of the kernels'.
+PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  const auto nogil = py::call_guard<py::gil_scoped_release>();
+  m.def("fma_throughput", &metegs_cpu::fma_throughput,
+        "float32 multiply-adds on the kernels' threads -> [seconds, flops, checksum] (the machine's peak, measured)",
+        nogil, py::arg("chunks"), py::arg("iterations"), py::arg("a") = 1.0, py::arg("b") = 1.0);
+  m.def("get_num_threads", &metegs::num_threads, "threads the probe runs on (as the kernels called from this thread)");
+}

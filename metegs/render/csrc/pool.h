@@ -42,7 +42,7 @@
 #define METEGS_OPENMP_TEAM 0
 #endif
 
-#if defined(__x86_64__) || defined(_M_X64)
+#if !defined(METEGS_PORTABLE) && (defined(__x86_64__) || defined(_M_X64))
 #include <immintrin.h>
 #define METEGS_PAUSE() _mm_pause()
 // The caller's denormal mode (MXCSR flush-to-zero and denormals-are-zero), which every chunk of its job runs

@@ -18,7 +18,6 @@
 #include <algorithm>
 #include <cmath>
 #include <cstring>
-#include <immintrin.h>
 #include <limits>
 #include <type_traits>
 
@@ -81,7 +80,7 @@ inline __attribute__((always_inline)) B_<L> finite(L x) { return (x - x) == cst<
 inline __attribute__((always_inline)) float vsqrt(float x) { return std::sqrt(x); }
 inline __attribute__((always_inline)) double vsqrt(double x) { return std::sqrt(x); }
 inline __attribute__((always_inline)) VF vsqrt(VF x) {
-#if defined(__AVX512F__)
+#if METEGS_AVX512
   return (VF)_mm512_sqrt_ps((__m512)x);
 #else
   for (int i = 0; i < LANES; ++i) x[i] = std::sqrt(x[i]);
@@ -91,7 +90,7 @@ inline __attribute__((always_inline)) VF vsqrt(VF x) {
 inline __attribute__((always_inline)) float vceil(float x) { return std::ceil(x); }
 inline __attribute__((always_inline)) double vceil(double x) { return std::ceil(x); }
 inline __attribute__((always_inline)) VF vceil(VF x) {
-#if defined(__AVX512F__)
+#if METEGS_AVX512
   return (VF)_mm512_roundscale_ps((__m512)x, _MM_FROUND_TO_POS_INF | _MM_FROUND_NO_EXC);
 #else
   for (int i = 0; i < LANES; ++i) x[i] = std::ceil(x[i]);
@@ -117,7 +116,7 @@ inline __attribute__((always_inline)) int32_t to_i32(float x) { return static_ca
 inline __attribute__((always_inline)) int32_t to_i32(double x) { return static_cast<int32_t>(x); }
 inline __attribute__((always_inline)) VI to_i32(VF x) { return __builtin_convertvector(x, VI); }
 
-#if defined(__AVX512F__)
+#if METEGS_AVX512
 // l * stride in lane l: the offsets of a gather or scatter over the 16 Gaussians of a block.
 inline __attribute__((always_inline)) __m512i lane_offsets(int64_t stride) {
   return _mm512_mullo_epi32(_mm512_set_epi32(15, 14, 13, 12, 11, 10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 0),
@@ -131,7 +130,7 @@ inline __attribute__((always_inline)) L load(const S_<L>* base, int64_t stride) 
   if constexpr (Lane<L>::N == 1) {
     return base[0];
   } else {
-#if defined(__AVX512F__)
+#if METEGS_AVX512
     return (L)_mm512_i32gather_ps(lane_offsets(stride), base, 4);
 #else
     L v;
@@ -145,7 +144,7 @@ inline __attribute__((always_inline)) void store(S_<L>* base, int64_t stride, L 
   if constexpr (Lane<L>::N == 1) {
     base[0] = v;
   } else {
-#if defined(__AVX512F__)
+#if METEGS_AVX512
     _mm512_i32scatter_ps(base, lane_offsets(stride), (__m512)v, 4);
 #else
     for (int i = 0; i < LANES; ++i) base[i * stride] = v[i];
