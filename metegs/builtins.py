@@ -20,15 +20,6 @@ _weather.register("fog-gaussians", "metegs.weather.fog_gaussians:FogGaussiansCon
 _weather.register("fog-analytic", "metegs.weather.fog_analytic:FogAnalyticConfig", description="fog from rendered depth: C·t + A(1-α·t)")
 _weather.register("lens-droplets", "metegs.weather.lens_droplets:LensDropletsConfig", description="refractive drops on the lens (image space)")
 
-_densify = registry("densifier")
-_densify.register("adc", "metegs.densify.adc:AdaptiveDensityControl", description="3DGS adaptive density control (clone/split/prune/reset)")
-_densify.register("depth-prune", "metegs.densify.depth_prune:DepthAwarePruning", description="depth-aware opacity pruning rule for adc (median camera depth; Deblurring-3DGS world z behind depth_mode)")
-_densify.register("extra-points", "metegs.densify.extra_points:ExtraPointCompensation", description="extra-point compensation in sparse regions, once (IDW colours; Deblurring-3DGS behaviour behind parity)")
-
-_losses = registry("loss")
-_losses.register("photometric", "metegs.losses.photometric:PhotometricLoss", description="(1-λ)·L1 + λ·(1-SSIM)")
-_losses.register("perceptual", "metegs.losses.perceptual:PerceptualLoss", description="L1 on frozen VGG16 / SqueezeNet 1.1 features, several layers and two scales")
-
 _methods = registry("method")
 _methods.register("3dgs", "metegs.methods:gaussian_splatting", description="plain 3D Gaussian Splatting (0.8·L1 + 0.2·D-SSIM)")
 _methods.register("metegs-full", "metegs.methods:metegs_full", description="MeteGS: rain + fog weather branch, GTN, clean branch, depth pruning, extra points")

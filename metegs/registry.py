@@ -24,7 +24,9 @@ from typing import Any
 from metegs.errors import ConfigError, PluginError
 
 ENTRY_POINT_GROUP = "metegs.plugins"
-KINDS = ("parser", "rasterizer", "weather", "loss", "densifier", "method", "meteo_reader", "restorer")
+KINDS = ("parser", "rasterizer", "weather", "method", "meteo_reader", "restorer")
+"""Component kinds a name selects: losses and densification are configured by each method's typed fields
+(`TrainConfig.loss`, `TrainConfig.densify`), and a plugin adds them through a method of its own."""
 
 
 class PluginWarning(UserWarning):

@@ -33,7 +33,7 @@ def method_configs() -> dict[str, tuple[str, Any]]:
     return out
 
 
-COMPONENT_KINDS = ("weather", "parser", "rasterizer", "densifier", "loss", "meteo_reader", "restorer")
+COMPONENT_KINDS = ("weather", "parser", "rasterizer", "meteo_reader", "restorer")
 """Registry kinds listed by ``metegs-train --help`` (methods are the subcommands)."""
 
 

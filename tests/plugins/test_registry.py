@@ -68,14 +68,14 @@ def test_unknown_name_lists_the_available_ones():
 
 
 def test_duplicate_registration_is_an_error():
-    r = Registry("loss")
+    r = Registry("weather")
     r.register("a", object())
     with pytest.raises(PluginError, match="already registered"):
         r.register("a", object())
 
 
 def test_lazy_target_that_fails_to_import_names_it():
-    r = Registry("loss")
+    r = Registry("weather")
     r.register("bad", "no_such_module_xyz:Thing")
     with pytest.raises(PluginError, match="no_such_module_xyz"):
         r.get("bad")
