@@ -16,6 +16,7 @@ import torch
 from metegs.engine.metegs_config import MeteGSConfig
 from metegs.engine.optim import adam
 from metegs.engine.trainer import StepRender, Trainer
+from metegs.errors import ConfigError
 from metegs.losses.robust import inlier_weights
 from metegs.models.gtn import may_be_visible
 from metegs.render import RenderSettings
@@ -373,6 +374,12 @@ class MeteGSTrainer(Trainer):
 
     def load_extra_state(self, ckpt: dict) -> None:
         if self.gtn is not None and ckpt.get("gtn") is not None:
+            saved = ckpt["gtn"].get("head_scale.weight")
+            if saved is not None and saved.shape[1] != self.config.gtn.width:
+                raise ConfigError(
+                    f"{self.resumed_from}: its GTN is {saved.shape[1]} wide, this run's {self.config.gtn.width}; "
+                    f"continue it with --gtn.width {saved.shape[1]} (or from its config.yml: --config RUN/config.yml)"
+                )
             self.gtn.load_state_dict(ckpt["gtn"])
         for m in self.weather_models:
             state = ckpt.get("weather", {}).get(m.name)

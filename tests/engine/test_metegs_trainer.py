@@ -9,6 +9,7 @@ import torch
 from metegs.data.config import DatasetConfig, SyntheticSceneConfig
 from metegs.densify.adc import ADCConfig
 from metegs.engine.metegs_config import MeteGSConfig
+from metegs.models.gtn import GTNConfig
 from metegs.weather.conditions import ConditionsConfig
 from metegs.weather.learnable import LearnableTransients
 
@@ -147,6 +148,18 @@ def test_resume_restores_weather_and_gtn(trained, tmp_path):
     assert torch.equal(fog_a.log_beta, fog_b.log_beta)
     again.train()
     assert again.step == 41
+
+
+def test_a_checkpoint_of_another_gtn_width_is_refused_with_the_flag_to_give(trained, tmp_path):
+    from metegs.errors import ConfigError
+
+    trainer, _ = trained
+    ckpt = trainer.run_dir / "checkpoints" / "step-000040.ckpt"
+    width = trainer.config.gtn.width
+    with pytest.raises(
+        ConfigError, match=f"its GTN is {width} wide, this run's {2 * width}; continue it with --gtn.width {width}"
+    ):
+        tiny_metegs(tmp_path, load_checkpoint=ckpt, max_steps=41, gtn=GTNConfig(width=2 * width)).setup()
 
 
 def test_clear_weather_builds_no_weather_and_blind_mode_skips_the_clean_branch(tmp_path):
