@@ -775,8 +775,8 @@ def test_peak_probe_runs_the_work_it_counts():
 
 def test_peak_probe_refuses_a_checksum_that_shows_missing_work(monkeypatch):
     class Short:
-        def get_num_threads(self):
-            return 1
+        def set_num_threads(self, n):
+            pass
 
         def fma_throughput(self, chunks, iterations):
             return [1e-3, 2.0 * 12 * 16 * iterations * chunks, 12 * 16 * iterations * (chunks - 1)]
@@ -786,3 +786,31 @@ def test_peak_probe_refuses_a_checksum_that_shows_missing_work(monkeypatch):
     monkeypatch.setattr(peak.PROBE, "load", lambda: Short())
     with pytest.raises(CpuExtensionError, match="checksum"):
         peak.measure_peak_gflops()
+
+
+def test_peak_probe_runs_on_the_kernels_thread_count_under_a_thread_split(monkeypatch):
+    """The probe is an extension of its own: under `--torch-threads 1` it must still use the kernels' threads (2),
+    not torch's (1), and leave its own setting as it was."""
+    from metegs.bench import peak
+
+    calls = []
+
+    class Spy:
+        def set_num_threads(self, n):
+            calls.append(("threads", n))
+
+        def fma_throughput(self, chunks, iterations):
+            calls.append(("chunks", chunks))
+            flops = 2.0 * 12 * 16 * iterations * chunks
+            return [1e-3, flops, flops / 2]
+
+    monkeypatch.setattr(peak.PROBE, "load", lambda: Spy())
+    previous = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        with cpu_backend.thread_split("cpu", 1):
+            assert torch.get_num_threads() == 1
+            peak.measure_peak_gflops(iterations=10)
+    finally:
+        torch.set_num_threads(previous)
+    assert calls == [("threads", 2), ("chunks", peak.PEAK_PROBE_CHUNKS_PER_THREAD * 2), ("threads", 0)]

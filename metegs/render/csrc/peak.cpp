@@ -60,5 +60,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("fma_throughput", &metegs_cpu::fma_throughput,
         "float32 multiply-adds on the kernels' threads -> [seconds, flops, checksum] (the machine's peak, measured)",
         nogil, py::arg("chunks"), py::arg("iterations"), py::arg("a") = 1.0, py::arg("b") = 1.0);
-  m.def("get_num_threads", &metegs::num_threads, "threads the probe runs on (as the kernels called from this thread)");
+  m.def("set_num_threads", [](int64_t n) { metegs::thread_override() = std::max<int64_t>(n, 0); },
+        "threads of the probe called from this thread (0: torch's intra-op count)", py::arg("n"));
+  m.def("get_num_threads", &metegs::num_threads, "threads the probe runs on when called from this thread");
 }
