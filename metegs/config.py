@@ -60,37 +60,50 @@ def absolute_paths(config: C) -> C:
     return dataclasses.replace(config, **changes)
 
 
-def _coerce(value: Any, annotation: Any, where: str) -> Any:
+TRUE_WORDS, FALSE_WORDS = ("1", "true", "yes", "on"), ("0", "false", "no", "off")
+"""How a yes/no option may be written as text."""
+
+
+def coerce(value: Any, annotation: Any, where: str, text: bool = False) -> Any:
+    """``value`` checked against (and converted to) the type ``annotation``: ints for floats, lists for tuples, strings
+    for paths. ``text``: ``value`` may also be written as text, as on a command line (``3.5``, ``true``, ``none``,
+    ``a,b`` for a tuple). A ConfigError names ``where`` and what was expected. The one converter of every config and
+    option in metegs (YAML configs, meteorological readers' options)."""
     origin = typing.get_origin(annotation)
     args = typing.get_args(annotation)
     if annotation is Any or annotation is None:
         return value
     if origin is typing.Annotated:
-        return _coerce(value, args[0], where)
+        return coerce(value, args[0], where, text)
     if origin in (typing.Union, types.UnionType):
-        if value is None and type(None) in args:
+        if type(None) in args and (
+            value is None or (text and isinstance(value, str) and value.lower() in ("none", "null"))
+        ):
             return None
+        errors = []
         for arg in args:
             if arg is type(None):
                 continue
             try:
-                return _coerce(value, arg, where)
-            except ConfigError:
-                pass
-        raise ConfigError(f"{where}: {value!r} matches none of {annotation}")
+                return coerce(value, arg, where, text)
+            except ConfigError as exc:
+                errors.append(exc)
+        raise errors[0] if len(errors) == 1 else ConfigError(f"{where}: {value!r} matches none of {annotation}")
     if origin is typing.Literal:
         if value not in args:
-            raise ConfigError(f"{where}: {value!r} is not one of {args}")
+            raise ConfigError(f"{where}: {value!r} is not one of {', '.join(map(repr, args))}")
         return value
     if origin in (tuple, list):
+        if text and isinstance(value, str):
+            value = [v.strip() for v in value.split(",")] if value.strip() else []
         if not isinstance(value, (list, tuple)):
             raise ConfigError(f"{where}: expected a list, got {value!r}")
         if origin is tuple and args and args[-1] is not Ellipsis:
             if len(args) != len(value):
                 raise ConfigError(f"{where}: expected {len(args)} values, got {len(value)}")
-            return tuple(_coerce(v, a, where) for v, a in zip(value, args))
+            return tuple(coerce(v, a, where, text) for v, a in zip(value, args))
         inner = args[0] if args else Any
-        seq = [_coerce(v, inner, where) for v in value]
+        seq = [coerce(v, inner, where, text) for v in value]
         return tuple(seq) if origin is tuple else seq
     if origin is dict:
         return dict(value)
@@ -98,13 +111,30 @@ def _coerce(value: Any, annotation: Any, where: str) -> Any:
         return value
     if annotation is Path:
         return Path(value)
+    if text and isinstance(value, str) and annotation in (bool, int, float):
+        return _from_text(value, annotation, where)
     if annotation is float and isinstance(value, (int, float)) and not isinstance(value, bool):
         return float(value)
     if annotation is int and isinstance(value, bool):
         raise ConfigError(f"{where}: expected an integer, got {value!r}")
+    if text and annotation is str and isinstance(value, (int, float)):
+        return str(value)
     if isinstance(annotation, type) and not isinstance(value, annotation):
         raise ConfigError(f"{where}: expected {annotation.__name__}, got {value!r}")
     return value
+
+
+def _from_text(value: str, annotation: type, where: str) -> Any:
+    if annotation is bool:
+        if value.lower() in TRUE_WORDS:
+            return True
+        if value.lower() in FALSE_WORDS:
+            return False
+        raise ConfigError(f"{where}: {value!r} is not true/false")
+    try:
+        return annotation(value)
+    except ValueError:
+        raise ConfigError(f"{where}: {value!r} is not a{'n integer' if annotation is int else ' number'}") from None
 
 
 def apply_overrides(config: C, overrides: dict[str, Any], where: str = "") -> C:
@@ -123,7 +153,7 @@ def apply_overrides(config: C, overrides: dict[str, Any], where: str = "") -> C:
         if dataclasses.is_dataclass(current) and isinstance(value, dict):
             changes[key] = apply_overrides(current, value, path)
         else:
-            changes[key] = _coerce(value, hints[key], path)
+            changes[key] = coerce(value, hints[key], path)
     return dataclasses.replace(config, **changes)
 
 

@@ -30,6 +30,7 @@ from metegs.errors import ConfigError, DataError
 from metegs.meteo.aggregate import RAIN_CLASSES
 from metegs.weather.conditions import ConditionsConfig
 from metegs.weather.degrade import FAMILIES
+from metegs.weather.kinds import parse_kinds, precipitation_kinds
 
 CLASS_TARGET_MM_H: dict[str, float] = {
     "light": math.sqrt(0.1 * 2.5),
@@ -38,8 +39,6 @@ CLASS_TARGET_MM_H: dict[str, float] = {
     "violent": math.sqrt(50.0 * 100.0),
 }
 """Rate aimed at in each WMO rain class, mm/h: the geometric mean of its bounds (violent: of 50-100 mm/h)."""
-
-KINDS = ("rain", "fog", "rain+fog")
 
 
 def class_bounds(name: str) -> tuple[float, float]:
@@ -172,9 +171,10 @@ class ConditionSpec:
     name: str
     """Short name (folder and table column), e.g. ``rain-heavy``."""
     kind: str
-    """``rain``, ``fog`` or ``rain+fog``: what is synthesised on the clean views."""
+    """Weather kinds joined with ``+`` (``rain``, ``fog``, ``rain+fog``; a plugin's, e.g. ``snow+fog``): what is
+    synthesised on the clean views."""
     rain: dict[str, Any] | None = None
-    """Rain source: ``{record: FILE, class: light|moderate|heavy|violent}`` (picked), or ``{record, time}``,
+    """Precipitation source (rain, or a plugin's precipitation such as snow): ``{record: FILE, class: light|moderate|heavy|violent}`` (picked), or ``{record, time}``,
     or ``{precip_mm_h: X}``; optional ``reader``, ``station``."""
     fog: dict[str, Any] | None = None
     """Fog source: ``{record: FILE, visibility_m: TARGET}`` (picked; optional ``tolerance``), or
@@ -188,11 +188,12 @@ class ConditionSpec:
             raise ConfigError(
                 f"condition {self.name!r}: family must be one of {', '.join(FAMILIES)}, got {self.family!r}"
             )
-        if self.kind not in KINDS:
-            raise ConfigError(f"condition {self.name!r}: kind must be one of {', '.join(KINDS)}, got {self.kind!r}")
-        if "rain" in self.kind.split("+") and not self.rain:
-            raise ConfigError(f"condition {self.name!r}: kind {self.kind} needs a 'rain:' source")
-        if "fog" in self.kind.split("+") and not self.fog:
+        kinds = parse_kinds(self.kind, f"condition {self.name!r}: kind")
+        if kinds & precipitation_kinds() and not self.rain:
+            raise ConfigError(
+                f"condition {self.name!r}: kind {self.kind} needs a 'rain:' source (the precipitation rate)"
+            )
+        if "fog" in kinds and not self.fog:
             raise ConfigError(f"condition {self.name!r}: kind {self.kind} needs a 'fog:' source")
 
 
@@ -241,11 +242,11 @@ def _known(source: dict, allowed: set[str], where: str) -> None:
 def resolve_condition(spec: ConditionSpec, base: Path | None = None) -> ResolvedCondition:
     """Pick the record times of ``spec`` and build its `ConditionsConfig` (relative record paths from ``base``)."""
     where = f"condition {spec.name!r}"
-    kinds = spec.kind.split("+")
+    kinds = parse_kinds(spec.kind, f"{where}: kind")
     prov: dict[str, Any] = {}
     record = time = precip = None
     visibility = None
-    if "rain" in kinds:
+    if kinds & precipitation_kinds():
         src = dict(spec.rain or {})
         _known(src, {"record", "class", "time", "reader", "station", "precip_mm_h"}, f"{where} rain")
         if "precip_mm_h" in src:

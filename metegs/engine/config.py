@@ -72,9 +72,10 @@ class TrainConfig(InstantiateConfig):
     OpenMP team, faster alone). The live viewer sets 1 while a browser shares the cores."""
     load_checkpoint: Path | None = None
     """Resume from this checkpoint file (.ckpt) of an earlier run."""
-    degrade: Literal["off", "auto", "rain", "fog", "rain+fog"] = "off"
+    degrade: str = "off"
     """Degrade a clean scene in memory before training, with the weather of `conditions` (the clean images become
-    the references): auto = the method's weather kinds on the built-in synthetic scene, off for scenes from files."""
+    the references): off, auto (the method's weather kinds on the built-in synthetic scene, off for scenes from
+    files) or weather kinds joined with + (rain, fog, rain+fog, +drops; a plugin's, e.g. snow+fog)."""
     degrade_family: Literal["physical", "independent"] = "physical"
     """Weather generator of `degrade`: metegs's own weather models from θ, or the independent family (2D streak
     layers, heterogeneous fog, blurred drops; made without them, so the method cannot fit its own generator)."""

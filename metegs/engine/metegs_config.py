@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import dataclasses
+import warnings
 from dataclasses import dataclass, field
-from typing import Annotated, Literal
+from typing import Annotated, TypeVar
 
 from metegs.densify.depth_prune import DepthPruneConfig
 from metegs.densify.extra_points import ExtraPointsConfig
@@ -12,11 +14,14 @@ from metegs.losses.perceptual import PerceptualLossConfig
 from metegs.losses.robust import RobustMaskConfig
 from metegs.models.gtn import GTNConfig
 from metegs.validate import NON_NEGATIVE
+from metegs.weather.base import WeatherModelConfig
 from metegs.weather.fog_analytic import FogAnalyticConfig
 from metegs.weather.fog_gaussians import FogGaussiansConfig
 from metegs.weather.learnable import LearnableWeatherConfig
 from metegs.weather.lens_droplets import LensDropletsConfig
 from metegs.weather.rain_streaks import RainStreaksConfig
+
+C = TypeVar("C")
 
 
 @dataclass
@@ -38,9 +43,10 @@ class MeteGSConfig(TrainConfig):
     _target: type = field(default_factory=lambda: _trainer_class(), repr=False)
     max_steps: int = 1500
     """Number of training steps (one view per step; two renders each: weather and clean branch)."""
-    degrade: Literal["off", "auto", "rain", "fog", "rain+fog"] = "auto"
+    degrade: str = "auto"
     """Degrade a clean scene in memory before training, with the weather of `conditions` (the clean images become
-    the references): auto = the method's weather kinds on the built-in synthetic scene, off for scenes from files."""
+    the references): off, auto (the kinds of the `weather` models on the built-in synthetic scene, off for scenes
+    from files) or weather kinds joined with + (rain, fog, rain+fog, +drops; a plugin's, e.g. snow+fog)."""
     weather: tuple[str, ...] = ("rain-streaks", "fog-analytic")
     """Weather models by registry name, plugins included (e.g. --weather snow fog-analytic)."""
     weather_branch: bool = True
@@ -73,28 +79,64 @@ class MeteGSConfig(TrainConfig):
     """Options of `fog-gaussians` (when listed in `weather`)."""
     lens_droplets: LensDropletsConfig = field(default_factory=LensDropletsConfig)
     """Options of `lens-droplets` (when listed in `weather`)."""
-    weather_options: dict[str, dict[str, int | float | bool | str]] = field(default_factory=dict)
-    """Options of weather models by name, plugins included (e.g. --weather-options snow max_count 500)."""
     robust: RobustMaskConfig = field(default_factory=RobustMaskConfig)
     """Trimmed photometric loss of the weather branch: pixels no model explains in a view are left out of it."""
     compare_baseline: bool = True
     """After training, train plain `3dgs` on the same photos and print both clean-view metrics."""
 
-    def weather_config(self, name: str):
-        """The config of weather model ``name``: the built-ins' fields above, else the registered default
-        (plugins), with `weather_options` applied on top."""
-        from metegs.config import apply_overrides
+    def weather_config(self, name: str) -> WeatherModelConfig:
+        """The config of weather model ``name``: its field (``rain_streaks`` for ``rain-streaks``; a plugin's model has
+        one in the configs `plugin_weather_fields` builds, as the method registry gives them), else the registered
+        default."""
         from metegs.registry import registry
 
-        builtin = {
-            "rain-streaks": self.rain_streaks,
-            "fog-analytic": self.fog_analytic,
-            "fog-gaussians": self.fog_gaussians,
-            "lens-droplets": self.lens_droplets,
-        }.get(name)
-        config = builtin if builtin is not None else registry("weather").get(name)()
-        options = self.weather_options.get(name)
-        return apply_overrides(config, options, f"weather_options.{name}") if options else config
+        config = getattr(self, weather_field(name), None)
+        return config if isinstance(config, WeatherModelConfig) else registry("weather").get(name)()
+
+
+def weather_field(name: str) -> str:
+    """The config field of weather model ``name`` (``rain-streaks`` -> ``rain_streaks``)."""
+    return name.replace("-", "_")
+
+
+_WITH_PLUGINS: dict[tuple, type] = {}
+
+
+def plugin_weather_fields(base: type[C]) -> type[C]:
+    """``base`` (a `MeteGSConfig` class) with a typed field for every registered weather model it has none for, the
+    plugins' (``--snow.max-count 500`` on the command line, ``snow: {max_count: 500}`` in YAML, listed by ``--help``);
+    ``base`` itself when there are none. One class per set of registered models."""
+    from metegs.registry import PluginWarning, registry
+
+    own = {f.name: f for f in dataclasses.fields(base)}
+    extra = []
+    for entry in registry("weather").entries():
+        name = weather_field(entry.name)
+        config_class = type(entry.load()())
+        if name not in own:
+            extra.append((name, config_class))
+        elif not _holds(own[name], config_class, base):
+            warnings.warn(
+                f"weather model {entry.name!r} ({entry.source}): its options cannot be set, {name!r} is already a "
+                f"field of {base.__name__}; it trains with its defaults",
+                PluginWarning,
+                stacklevel=2,
+            )
+    if not extra:
+        return base
+    key = (base, tuple(extra))
+    if key not in _WITH_PLUGINS:
+        fields = [(n, c, field(default_factory=c)) for n, c in extra]
+        _WITH_PLUGINS[key] = dataclasses.make_dataclass(
+            base.__name__, fields, bases=(base,), namespace={"__doc__": base.__doc__, "__module__": base.__module__}
+        )
+    return _WITH_PLUGINS[key]
+
+
+def _holds(f: dataclasses.Field, config_class: type, base: type) -> bool:
+    """Whether field ``f`` of ``base`` holds a config of ``config_class``."""
+    default = f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
+    return isinstance(default, config_class)
 
 
 def _trainer_class():

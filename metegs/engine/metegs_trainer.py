@@ -20,7 +20,7 @@ from metegs.errors import ConfigError
 from metegs.losses.robust import inlier_weights
 from metegs.models.gtn import may_be_visible
 from metegs.render import RenderSettings
-from metegs.weather.base import WeatherModel, WeatherScene
+from metegs.weather.base import WeatherModel, WeatherScene, model_seed
 from metegs.weather.compose import render_with_weather
 from metegs.weather.fog_analytic import FogAnalytic
 from metegs.weather.learnable import LearnableTransients
@@ -48,9 +48,13 @@ class MeteGSTrainer(Trainer):
 
     # --- setup -------------------------------------------------------------------------------------
     def weather_kinds(self) -> set[str]:
+        """The kinds of the `weather` models (rain, fog; a plugin's such as snow); rain and fog in the ablation without
+        a weather branch."""
         if not self.config.weather_branch:
             return {"rain", "fog"}
-        return {k for k in ("rain", "fog") if any(k in name for name in self.config.weather)}
+        from metegs.weather.kinds import kind_of
+
+        return {kind_of(name) for name in self.config.weather}
 
     def setup_method(self) -> None:
         c = self.config
@@ -102,7 +106,7 @@ class MeteGSTrainer(Trainer):
             up=torch.as_tensor(self.scene.up, dtype=torch.float32, device=self.device),
             metres_per_unit=scene_metres_per_unit(c.conditions, self.scene.metric_scale),
             images=ds.images,
-            seed=c.seed + 7919,  # never the seed a synthesised dataset used: the model must not know its streaks
+            seed=model_seed(c.seed),
         )
         models, depth_m = [], None
         for name in c.weather:

@@ -39,6 +39,8 @@ def read_config_file(path: Path) -> dict:
     for name in sorted(RETIRED_FIELDS.keys() & data.keys()):
         data.pop(name)
         warnings.warn(f"{path}: ignoring {name!r}: {RETIRED_FIELDS[name]}", stacklevel=2)
+    for model, options in (data.pop("weather_options", None) or {}).items():  # now each model's own typed field
+        data.setdefault(model.replace("-", "_"), {}).update(options)
     return data
 
 

@@ -180,7 +180,9 @@ class Trainer:
             return set()
         if mode == "auto":
             return self.weather_kinds() if scene.parser == "synthetic" else set()
-        return set(mode.split("+"))
+        from metegs.weather.kinds import parse_kinds
+
+        return set(parse_kinds(mode, "--degrade"))
 
     def weather_theta(self, scene: SceneData) -> Theta:
         """θ of the configured conditions for this scene's cameras (computed once)."""
@@ -198,6 +200,7 @@ class Trainer:
             return scene
         from metegs.weather.conditions import describe, describe_conditions, scene_metres_per_unit
         from metegs.weather.degrade import degrade_scene
+        from metegs.weather.kinds import join_kinds
 
         if scene.images is None and scene.image_paths is None:
             raise ConfigError("--degrade needs the scene's images")
@@ -205,14 +208,14 @@ class Trainer:
         degraded, _ = degrade_scene(
             scene,
             theta,
-            kinds="+".join(sorted(kinds, reverse=True)),
+            kinds=join_kinds(kinds),
             seed=self.config.seed,
             metres_per_unit=scene_metres_per_unit(self.config.conditions, scene.metric_scale),
             family=self.config.degrade_family,
         )
         self.decide(
             "degrade",
-            f"{'+'.join(sorted(kinds, reverse=True))} synthesised on the clean views "
+            f"{join_kinds(kinds)} synthesised on the clean views "
             f"({self.config.degrade_family} family): "
             + (describe(theta) if self.config.degrade_family == "physical" else describe_conditions(theta)),
         )

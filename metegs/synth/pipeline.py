@@ -27,7 +27,7 @@ from metegs.validate import NON_NEGATIVE, POSITIVE, Range, check_config
 
 @dataclass
 class SynthConfig:
-    """Degrade a dataset with weather from a met record (rain streaks, fog, lens drops)."""
+    """Degrade a dataset with weather from a met record (rain streaks, fog, lens drops, a plugin's weather)."""
 
     output: Path
     """Folder to write (must not exist unless --overwrite)."""
@@ -67,8 +67,9 @@ class SynthConfig:
     """Weather generator: metegs's own weather models from θ (physical), or 2D streak layers, heterogeneous fog
     and blurred lens drops made without them (independent: a benchmark a method cannot fit with its own model)."""
     kinds: str = "rain+fog"
-    """Weather to add: rain, fog or rain+fog; append +drops for lens drops when it rains (θ's count, else a
-    default); the fog of rain+fog includes the rain's own veil."""
+    """Weather to add: registered weather kinds joined with + (rain, fog, rain+fog; a plugin's, e.g. snow or
+    snow+fog); append +drops for lens drops when it rains (θ's count, else a default); the fog of rain+fog
+    includes the rain's own veil."""
     seed: int = 0
     """Seed of the rain and lens drops (view v draws from (seed, v))."""
     metres_per_unit: Annotated[float | None, POSITIVE] = None
@@ -108,11 +109,12 @@ def synthesise(args: SynthConfig, console: Console | None = None) -> Path:
     from metegs.synth.depth import guess_metres_per_unit
     from metegs.synth.writers import DatasetWriter
     from metegs.weather.conditions import theta_camera
-    from metegs.weather.degrade import iter_degraded_views, parse_kinds
+    from metegs.weather.degrade import iter_degraded_views
+    from metegs.weather.kinds import join_kinds, parse_kinds
 
     console = console or Console(stderr=True)
     t0 = time.perf_counter()
-    kinds = "+".join(k for k in ("rain", "fog", "drops") if k in parse_kinds(args.kinds))
+    kinds = join_kinds(parse_kinds(args.kinds, "--kinds"))
     if args.output.exists() and not args.overwrite:
         raise ConfigError(f"{args.output} exists; choose another --output or pass --overwrite")
     explicit = any(v is not None for v in (args.precip_mm_h, args.wind_speed_m_per_s, args.wind_dir_deg))

@@ -12,6 +12,7 @@ import viser
 
 from metegs.errors import MetegsError
 from metegs.meteo import intensity_class
+from metegs.registry import registry
 from metegs.viewer.render import Snapshot
 from metegs.viewer.weather import (
     CLEAR_VISIBILITY_M,
@@ -61,13 +62,14 @@ class ViewerPanels:
         self.weather_on = gui.add_checkbox("Weather render", self.mode == "weather", hint="Off: the clean scene")
         self.weather_on.on_update(lambda _: self._set_mode("weather" if self.weather_on.value else "clean"))
         self.rain = gui.add_slider(
-            "Rain (log mm/h)",
+            "Precipitation (log mm/h)",
             RAIN_OFF_LOG,
             round(RAIN_MAX_LOG, 2),
             0.01,
             _rain_to_slider(v.precip_mm_h),
             marks=((RAIN_OFF_LOG, "off"), (-1.0, "0.1"), (0.4, "2.5"), (1.0, "10"), (1.7, "50"), (2.3, "200")),
-            hint="Precipitation rate, log10 mm/h; WMO classes: light < 2.5 ≤ moderate < 10 ≤ heavy < 50 ≤ violent",
+            hint="Precipitation rate (water equivalent for snow), log10 mm/h; WMO rain classes: light < 2.5 ≤ "
+            "moderate < 10 ≤ heavy < 50 ≤ violent",
         )
         self.rain_md = gui.add_markdown("")
         self.visibility = gui.add_slider(
@@ -115,6 +117,17 @@ class ViewerPanels:
             self.hour_md = gui.add_markdown("")
             self.hour.on_update(lambda _: self._jump_to_hour(int(self.hour.value)))
             self._describe_hour(self.timeline.capture_index)
+        with gui.add_folder("Weather models", expand_by_default=False):
+            self.model_boxes = {
+                e.name: gui.add_checkbox(
+                    e.name + ("" if e.source == "metegs" else f" [{e.source}]"),
+                    e.name in self.weather.names,
+                    hint=e.description or e.name,
+                )
+                for e in registry("weather").entries()
+            }
+        for box in self.model_boxes.values():
+            box.on_update(lambda _: self._models_changed())
         reset = gui.add_button("Run's weather", hint="Back to the weather the run was trained with")
         reset.on_click(lambda _: self._set_values(self.run_values, switch_on=True))
         if self.weather_note:
@@ -198,6 +211,14 @@ class ViewerPanels:
             self.weather_on.value = True  # calls _set_mode
         self._wake.set()
 
+    def _models_changed(self) -> None:
+        """Show the weather models whose boxes are ticked (in registry order)."""
+        with self._lock:
+            self.weather.set_models([name for name, box in self.model_boxes.items() if box.value])
+            self._weather_version += 1
+        self._describe_weather()
+        self._wake.set()
+
     def set_weather(self, values: WeatherValues, switch_on: bool = True) -> None:
         """Move the sliders to ``values`` (and re-render once)."""
         self._set_values(values, switch_on)
@@ -240,17 +261,13 @@ class ViewerPanels:
 
         values = self.current_values()
         p = values.precip_mm_h
-        cls = "no rain" if p <= 0 else f"**{intensity_class(p)}** (WMO)"
-        self.rain_md.content = f"{p:.3g} mm/h · {cls}" if p > 0 else "no rain"
+        self.rain_md.content = f"{p:.3g} mm/h · **{intensity_class(p)}** (WMO)" if p > 0 else "none"
         vis = "clear" if values.visibility_m is None else f"{values.visibility_m:,.0f} m"
         self.theta_md.content = (
             f"visibility {vis} · wind {values.wind_speed_m_s:.1f} m/s from {values.wind_dir_deg:.0f}° · "
             f"exposure {format_exposure(values.exposure_s)}  \nθ: {describe(self.weather.theta)}"
         )
-        caps = [getattr(c, "max_count", None) for c in self.weather.configs]
-        caps = [c for c in caps if c is not None]
-        if caps and self.weather.theta.rain.active and self.weather.theta.rain.count > min(caps):
-            self.theta_md.content += f" (drawn: {min(caps):,} per view, opacity raised to keep the coverage)"
+        self.theta_md.content += "  \nmodels: " + (", ".join(f"`{n}`" for n in self.weather.names) or "none")
 
     def _set_mode(self, mode: str) -> None:
         with self._lock:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from datetime import datetime, timedelta
 
@@ -13,7 +14,8 @@ import torch
 
 from metegs.cameras import Cameras
 from metegs.meteo import Theta, intensity_class, theta_from_values
-from metegs.weather.base import WeatherModel, WeatherModelConfig, WeatherScene
+from metegs.registry import registry
+from metegs.weather.base import WeatherModel, WeatherModelConfig, WeatherScene, model_seed
 from metegs.weather.compose import build_weather_models
 from metegs.weather.conditions import ConditionsConfig, theta_camera
 
@@ -76,29 +78,45 @@ class ViewerWeather:
 
     θ is mapped with the run's camera spec (`theta_camera` of the training cameras), so streak sizes and counts mean
     what they meant in training; the models are rebuilt (through `build_weather_models`, plugins included) for each
-    viewing camera, from one reference image that stands for all training views (drop colour, airlight).
+    viewing camera, from one reference image that stands for all training views (drop colour, airlight), with north
+    pinned to the training views' mean direction so that the wind blows the same way whichever way the viewer looks.
+    Every registered weather model can be switched on (`set_models`), with the run's config where it has one.
     """
 
     def __init__(
         self,
-        configs: list[str | WeatherModelConfig],
+        names: Sequence[str],
         cameras: Cameras,
         images: list[torch.Tensor] | None,
         up: np.ndarray,
         metres_per_unit: float,
         conditions: ConditionsConfig,
         seed: int = 0,
+        config_of: Callable[[str], WeatherModelConfig] | None = None,
     ):
         self.cameras = cameras
         self.metres_per_unit = float(metres_per_unit)
         self.capture_width_px = conditions.capture_width_px
         self.up = torch.as_tensor(np.asarray(up), dtype=torch.float32)
         self.seed = seed
-        forward = cameras.camera_to_worlds[:, :3, 2].double().mean(0)
-        self.configs = [_pin_north(c, forward) for c in configs]
+        self.north = cameras.camera_to_worlds[:, :3, 2].double().mean(0)
+        """[3] the training views' mean viewing direction: north of every viewing camera's weather."""
+        self.config_of = config_of or (lambda name: registry("weather").get(name)())
+        """A weather model's config by registry name (the run's own where it has one)."""
+        self.names: list[str] = []
+        """Registry names of the weather models shown."""
+        self.configs: list[WeatherModelConfig] = []
+        """Their configs."""
+        self.set_models(names)
         self.reference = reference_image(images) if images else None
         self.theta: Theta | None = None
         self.values: WeatherValues | None = None
+
+    def set_models(self, names: list[str]) -> None:
+        """Show the registered weather models ``names`` (the run's configs where it has them)."""
+        current = dict(zip(self.names, self.configs))
+        self.configs = [current[n] if n in current else self.config_of(n) for n in names]
+        self.names = list(names)
 
     def set_values(self, values: WeatherValues) -> Theta:
         """Map the values to θ (the run's camera spec with the slider's exposure) and keep it."""
@@ -119,18 +137,9 @@ class ViewerWeather:
             metres_per_unit=self.metres_per_unit,
             images=None if self.reference is None else [self.reference.to(camera.device)],
             seed=self.seed,
+            north=self.north,
         )
         return [m.to(camera.device) for m in build_weather_models(self.configs, self.theta, scene)]
-
-
-def _pin_north(config: str | WeatherModelConfig, forward: torch.Tensor) -> str | WeatherModelConfig:
-    """A config whose "north" (when it has one and leaves it to the cameras) is the training views' mean direction,
-    so that the wind blows the same way whichever way the viewer looks."""
-    if isinstance(config, WeatherModelConfig) and dataclasses.is_dataclass(config):
-        names = {f.name for f in dataclasses.fields(config)}
-        if "north" in names and config.north is None:
-            return dataclasses.replace(config, north=tuple(float(v) for v in forward))
-    return config
 
 
 def reference_image(images: list[torch.Tensor], max_views: int = 16) -> torch.Tensor:
@@ -250,18 +259,17 @@ class RunWeather:
 def run_weather(trainer) -> RunWeather:
     """The weather of ``trainer``'s run: its weather models (or `DEFAULT_WEATHER` for a run without any, such as
     plain 3DGS), its θ as values and its met record as hours."""
-    from metegs.engine.metegs_config import MeteGSConfig
+    from metegs.engine.metegs_config import MeteGSConfig, plugin_weather_fields
     from metegs.errors import MetegsError
     from metegs.weather.conditions import DEFAULT_EXPOSURE_S, scene_metres_per_unit, theta_for_cameras
 
     c, ds = trainer.config, trainer.dataset
     names = list(getattr(c, "weather", ()) or DEFAULT_WEATHER)
-    own = c.weather_config if hasattr(c, "weather_config") else MeteGSConfig().weather_config
-    configs = [own(n) or n for n in names]
+    own = c.weather_config if isinstance(c, MeteGSConfig) else plugin_weather_fields(MeteGSConfig)().weather_config
     mpu = scene_metres_per_unit(c.conditions, trainer.scene.metric_scale)
     train = ds.cameras[ds.train_indices]
     images = [ds.images[i] for i in ds.train_indices]
-    weather = ViewerWeather(configs, train, images, trainer.scene.up, mpu, c.conditions, seed=c.seed + 7919)
+    weather = ViewerWeather(names, train, images, trainer.scene.up, mpu, c.conditions, model_seed(c.seed), own)
     exposure = c.conditions.exposure_s
     if exposure is None:
         exposure = float(train.exposure_time_s[0]) if train.exposure_time_s is not None else DEFAULT_EXPOSURE_S

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import ClassVar, Literal
 
@@ -30,6 +31,18 @@ class WeatherScene:
     """[H, W, 3] images of the views in [0, 1] (clean where known), for colour and airlight estimates."""
     seed: int = 0
     """Seed of every random choice (per view: seed + view)."""
+    north: torch.Tensor | None = None
+    """[3] world direction taken as geographic north for the wind (None: the cameras' mean viewing direction); the
+    viewer pins it to the training views' so that the wind keeps its direction whichever way one looks."""
+
+    def north_hint(self, configured: tuple[float, float, float] | None = None) -> torch.Tensor:
+        """[3] float64 direction of north: ``configured`` (a model's option) when given, else `north`, else the mean
+        viewing direction of the cameras (to be made horizontal, e.g. by `rain_streaks.horizontal_frame`)."""
+        if configured is not None:
+            return torch.tensor(configured, dtype=torch.float64)
+        if self.north is not None:
+            return self.north.detach().double().cpu()
+        return self.cameras.camera_to_worlds.double().cpu()[:, :3, 2].mean(0)
 
     def to_metres(self, length_units: torch.Tensor | float) -> torch.Tensor | float:
         return length_units * self.metres_per_unit
@@ -53,6 +66,9 @@ class WeatherModel(torch.nn.Module):
 
     stage: ClassVar[Stage] = "gaussians"
     name: ClassVar[str] = "weather"
+    kind: ClassVar[str] = "weather"
+    """What weather this is (``rain``, ``fog``, ``drops``, ``snow`` ...): the word `--degrade`, `metegs-synth --kinds`
+    and the benchmark's conditions use for it, and what `--degrade auto` synthesises for a method that models it."""
     transient: ClassVar[bool] = False
     """True when the Gaussians differ in every view (rain, snow: each photo is its own instant)."""
 
@@ -89,9 +105,51 @@ class WeatherModel(torch.nn.Module):
         return None
 
 
+MODEL_SEED_OFFSET = 7919
+"""Added to a run's seed for the weather models it trains (and the viewer shows): never the seed a dataset was
+synthesised with, so that a model never knows the streaks it has to find."""
+
+
+def model_seed(seed: int) -> int:
+    """The seed of a run's weather models for the run's ``seed``."""
+    return int(seed) + MODEL_SEED_OFFSET
+
+
+@dataclass(frozen=True)
+class SynthesisRequest:
+    """What a dataset's synthesis asks of the weather models (`WeatherModelConfig.for_synthesis`)."""
+
+    kinds: frozenset[str]
+    """Weather kinds asked for, e.g. {"rain", "fog"}."""
+    theta: Theta
+    """θ of the views being degraded."""
+    airlight: Callable[[], tuple[float, float, float]]
+    """The airlight of every view, estimated once from all clean images (for media that need one)."""
+
+
 @dataclass
 class WeatherModelConfig(InstantiateConfig):
     """Base of weather model configs: ``setup(theta=..., scene=...)`` builds the model."""
 
     enabled: bool = True
     """Build this model at all (it is still inactive when θ does not call for it)."""
+
+    @property
+    def kind(self) -> str:
+        """The weather kind of the model this config builds (`WeatherModel.kind`)."""
+        return self.model_class().kind
+
+    def model_class(self) -> type[WeatherModel]:
+        """The `WeatherModel` subclass this config builds."""
+        target = getattr(self, "_target", None)
+        if isinstance(target, str):
+            from metegs.registry import Entry
+
+            target = Entry(type(self).__name__, target).load()
+        return target
+
+    def for_synthesis(self, request: SynthesisRequest) -> WeatherModelConfig | None:
+        """The config with which this model degrades a dataset for ``request`` (`metegs-synth`, `--degrade`), or None
+        when it adds nothing to that weather: by default itself when its kind is asked for. A model whose weather
+        another one synthesises better returns None; a medium that needs an airlight takes ``request.airlight()``."""
+        return self if self.kind in request.kinds else None

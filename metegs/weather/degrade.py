@@ -1,18 +1,21 @@
-"""Degrade the views of a scene with weather from θ: per-view rain streaks, one fog medium, optional lens drops.
+"""Degrade the views of a scene with weather from θ, made by the registered weather models of the kinds asked for.
 
+Every registered model says through `WeatherModelConfig.for_synthesis` whether and how it makes the kinds asked for
+(``rain`` = `rain-streaks`, ``fog`` = `fog-analytic`, ``drops`` = `lens-droplets`, ``snow`` = the snow plugin ...).
 For each view the photo is treated as a backdrop at its depth map (z along the optical axis, scene units):
 
-1. fog (``fog-analytic``): ``C = I·t + A·(1 − t)``, ``t = exp(−β·d)``, d the ray length to the backdrop in
-   metres; pixels of unknown depth (non-finite or ≤ 0, e.g. where a trained run renders nothing) take the
-   depth of the nearest known pixel (a view without any known depth is infinitely far: airlight);
-2. rain (``rain-streaks``): that view's streak Gaussians (seeded per view) are rasterised alone and
-   composited over the fogged photo; a streak behind the backdrop is hidden (its mean is culled when it
-   lies behind the depth at its pixel, and pixels whose rendered rain depth lies behind the backdrop are
-   masked), and the air between the camera and the streak fogs it like everything else;
-3. lens drops (``lens-droplets``, only when asked for): image-space refractive drops, last.
+1. media (``fog-analytic``: ``C = I·t + A·(1 − t)``, ``t = exp(−β·d)``, d the ray length to the backdrop in
+   metres; the fog of rain+fog includes the rain's own veil); pixels of unknown depth (non-finite or ≤ 0, e.g.
+   where a trained run renders nothing) take the depth of the nearest known pixel (a view without any known depth
+   is infinitely far: airlight);
+2. world-space weather (rain streaks, snowflakes): that view's Gaussians of every such model (seeded per view) are
+   rasterised together, alone, and composited over the fogged photo; a Gaussian behind the backdrop is hidden (its
+   mean is culled when it lies behind the depth at its pixel, and pixels whose rendered depth lies behind the
+   backdrop are masked), and the air between the camera and the Gaussian fogs it like everything else;
+3. lens effects (``lens-droplets``, only when asked for), last.
 
 The medium (β, airlight) is the same in every view: the airlight is estimated once from all clean images
-(unless θ gives it), so two views of one point agree on its fog; the rain is drawn anew for every view.
+(unless θ gives it), so two views of one point agree on its fog; rain and snow are drawn anew for every view.
 """
 
 from __future__ import annotations
@@ -28,40 +31,26 @@ import torch
 from metegs.data.images import load_image
 from metegs.data.scene import SceneData
 from metegs.errors import ConfigError, DataError
+from metegs.gaussians.model import GaussianSet
 from metegs.meteo.mapping import Theta
 from metegs.registry import registry
 from metegs.render.base import RenderOutput, RenderSettings
 from metegs.render.cpu_backend import single_thread
 from metegs.weather.airlight import estimate_airlight
-from metegs.weather.base import WeatherModel, WeatherScene
+from metegs.weather.base import SynthesisRequest, WeatherModel, WeatherScene
 from metegs.weather.compose import build_weather_models
-from metegs.weather.fog_analytic import ray_lengths
-
-KINDS = ("rain", "fog", "drops")
-"""Weather kinds ``kinds`` may join with ``+``: ``rain`` (the streaks within their far distance and the veil of the
-rain beyond it, θ_fog.beta_rain_per_m, over clear air), ``fog`` (the fog medium, plus the rain's veil when it
-rains) and ``drops`` (lens drops when it rains: θ_drops' count when the record implies drops,
-else the model's forced default). Lens drops are a property of one camera's glass, not of the scene's weather, and
-they hide large parts of the view: they are added only when asked for."""
+from metegs.weather.kinds import join_kinds, parse_kinds
 
 FAMILIES = ("physical", "independent")
-"""Degradation families: metegs's own weather models from θ, or `metegs.weather.independent` (a benchmark that the
-method cannot fit with its own generator)."""
+"""Degradation families: the registered weather models from θ (metegs's own and plugins'), or
+`metegs.weather.independent` (rain, fog and drops made without them: a benchmark that the method cannot fit with its
+own generator)."""
+
+INDEPENDENT_KINDS = frozenset({"rain", "fog", "drops"})
+"""The kinds the independent family makes."""
 
 UNKNOWN_DEPTH = 1e9
 """Depth (scene units) given to pixels whose depth is unknown: far beyond any fog's reach."""
-
-
-def parse_kinds(kinds: str) -> frozenset[str]:
-    """``"rain+fog"`` → {"rain", "fog"}; ConfigError for unknown or empty kinds."""
-    parts = frozenset(k.strip().lower() for k in str(kinds).split("+") if k.strip())
-    unknown = sorted(parts - set(KINDS))
-    if unknown or not parts & {"rain", "fog"}:
-        raise ConfigError(
-            f"kinds={kinds!r}: expected 'rain', 'fog' or 'rain+fog' (optionally '+drops' to force lens drops)"
-            + (f"; unknown: {', '.join(unknown)}" if unknown else "")
-        )
-    return parts
 
 
 @dataclass
@@ -93,9 +82,10 @@ def degrade_scene(
     Args:
         scene: any parsed scene; its images are read from ``images`` or ``image_paths``.
         theta: one θ for every view, or one per view (same length as the scene).
-        kinds: ``rain``, ``fog`` or ``rain+fog``; ``+drops`` adds lens drops when it rains (θ_drops' count, or the
-            lens model's forced default when θ_drops has none).
-        seed: seed of every random choice (view v's rain and lens drops are seeded from (seed, v)).
+        kinds: registered weather kinds joined with ``+`` (`metegs.weather.kinds`): ``rain``, ``fog``, ``rain+fog``,
+            a plugin's (``snow+fog``); ``+drops`` adds lens drops when it rains (θ_drops' count, or the lens model's
+            forced default when θ_drops has none).
+        seed: seed of every random choice (view v's rain, snow and lens drops are seeded from (seed, v)).
         metres_per_unit: length of a scene unit in metres; None: ``scene.metric_scale`` or 1.0.
         depths: per view [H, W] depth (z along the optical axis, scene units; non-finite or ≤ 0 where unknown,
             filled from the nearest known pixel); None: ``scene.depths``.
@@ -105,8 +95,8 @@ def degrade_scene(
         (scene copy, records): the copy's ``images`` are the degraded views (float32 [H, W, 3] in memory),
         its ``clean_images`` the original images (``image_paths``/``clean_image_paths`` are None: the arrays
         are authoritative); one record per view for weather.json (view, name, seed, kinds, θ.to_dict(), the
-        number of rain Gaussians drawn and their visible coverage, and with fog the medium's β per channel
-        and airlight).
+        number of weather Gaussians (rain, snow) drawn, per model and in all, and their visible coverage, and each
+        medium's summary, e.g. the fog's β per channel and airlight).
     """
     images, cleans, records = [], [], []
     for view in iter_degraded_views(
@@ -131,9 +121,14 @@ def iter_degraded_views(
     family: str = "physical",
 ) -> Iterator[DegradedView]:
     """`degrade_scene` one view at a time (for progress bars); ``views`` picks a subset (default: all).
-    ``family``: ``physical`` (metegs's weather models from θ) or ``independent`` (`metegs.weather.independent`:
-    made without them, from θ's met conditions only)."""
+    ``family``: ``physical`` (the registered weather models from θ) or ``independent``
+    (`metegs.weather.independent`: rain, fog and drops made without them, from θ's met conditions only)."""
     wanted = parse_kinds(kinds)
+    if family == "independent" and wanted - INDEPENDENT_KINDS:
+        raise ConfigError(
+            f"kinds={kinds!r}: the independent family makes {', '.join(sorted(INDEPENDENT_KINDS))} only; "
+            f"{', '.join(sorted(wanted - INDEPENDENT_KINDS))} needs the physical family (its registered model)"
+        )
     n = len(scene)
     thetas = _per_view_thetas(theta, n)
     mpu = float(metres_per_unit if metres_per_unit is not None else (scene.metric_scale or 1.0))
@@ -220,20 +215,13 @@ def fill_unknown_depth(depth: np.ndarray) -> np.ndarray:
     return d[known][labels - 1].astype(np.float32)
 
 
-def _config(name: str, **fields):
-    """Default config of the registered weather model ``name`` with the given fields set (when it has them)."""
-    config = registry("weather").get(name)()
-    known = {f.name for f in dataclasses.fields(config)}
-    return dataclasses.replace(config, **{k: v for k, v in fields.items() if k in known})
-
-
 class _Engine:
     """Builds the weather models once per distinct θ and degrades views with them."""
 
     def __init__(self, scene: SceneData, thetas: list[Theta], kinds: frozenset[str], seed: int, mpu: float, clean):
         self.scene, self.thetas, self.kinds, self.seed, self.mpu = scene, thetas, kinds, int(seed), mpu
         self.clean = clean
-        self._groups: list[tuple[Theta, dict[str, WeatherModel], dict]] = []
+        self._groups: list[tuple[Theta, dict[str, list[WeatherModel]], dict]] = []
         self._airlight: tuple[float, float, float] | None = None
         self._images_t: list[torch.Tensor] | None = None
         self._rasterizer = None
@@ -258,8 +246,8 @@ class _Engine:
             self._rasterizer = make_rasterizer("auto", "cpu")
         return self._rasterizer
 
-    def models(self, theta: Theta) -> tuple[dict[str, WeatherModel], dict]:
-        """Models (by stage name) and the θ record for ``theta``, built on first use."""
+    def models(self, theta: Theta) -> tuple[dict[str, list[WeatherModel]], dict]:
+        """Active models by stage (``gaussians``, ``medium``, ``lens``) and the θ record for ``theta``, built on first use."""
         for t, models, plain in self._groups:
             if t is theta or t == theta:
                 return models, plain
@@ -270,20 +258,13 @@ class _Engine:
             images=None,
             seed=self.seed,
         )
-        configs = []
-        rain_wanted = "rain" in self.kinds and theta.rain.active
-        if rain_wanted:
-            wscene.images = self._images()  # the drop colour is lit by each view's sky
-            configs.append(_config("rain-streaks"))
-        if "fog" in self.kinds or rain_wanted:  # rain beyond the streaks' reach acts as a veil (weather-physics.md)
-            airlight = None if theta.fog.airlight_rgb is not None else self.airlight()
-            configs.append(
-                _config("fog-analytic", airlight=airlight, include_rain_veil="rain" in self.kinds, learnable=False)
-            )
-        if "drops" in self.kinds and theta.rain.active:  # θ_drops' count when it implies drops, else forced
-            configs.append(_config("lens-droplets", force=True))
+        request = SynthesisRequest(self.kinds, theta, self.airlight)
+        configs = [c for e in registry("weather").entries() if (c := e.load()().for_synthesis(request)) is not None]
+        wscene.images = self._images()  # drop and flake colours are lit by each view's sky
         built = build_weather_models(configs, theta, wscene) if configs else []
-        models = {m.stage: m for m in built if m.active}
+        models = {
+            stage: [m for m in built if m.active and m.stage == stage] for stage in ("gaussians", "medium", "lens")
+        }
         plain = theta.to_dict()
         self._groups.append((theta, models, plain))
         return models, plain
@@ -293,65 +274,78 @@ class _Engine:
     def view(self, i: int, image: np.ndarray, depth: np.ndarray) -> tuple[np.ndarray, dict]:
         theta = self.thetas[i]
         models, plain = self.models(theta)
+        media = models["medium"]
         record = {
             "view": i,
             "name": self.scene.names[i] if i < len(self.scene.names) else str(i),
             "seed": self.seed,
-            "kinds": "+".join(k for k in KINDS if k in self.kinds),
+            "kinds": join_kinds(self.kinds),
             "num_rain_gaussians": 0,
             "rain_coverage": 0.0,
-            "fog": "medium" in models,
+            "fog": bool(media),
             "lens_drops": 0,
             "theta": copy.deepcopy(plain),
         }
-        if not models:  # nothing called for: exactly the clean image
+        if not any(models.values()):  # nothing called for: exactly the clean image
             return image.copy(), record
         rgb = torch.from_numpy(image).float()
         d = torch.from_numpy(depth)
         H, W = d.shape
-        full = torch.ones(H, W)
-        backdrop = RenderOutput(rgb, full, d, torch.zeros(0), torch.zeros(0, 2), 0, W, H)
-        fog = models.get("medium")
-        if fog is not None:
-            rgb = fog.apply(rgb, backdrop, i, self.settings)
-            record["fog_beta_rgb_per_m"] = [float(b) for b in fog.beta_rgb.detach()]
-            record["airlight_rgb"] = [float(a) for a in fog.airlight.detach()]
-        rain = models.get("gaussians")
-        if rain is not None:
-            rgb, n, coverage = self._rain(rain, fog, i, rgb, d)
-            record["num_rain_gaussians"], record["rain_coverage"] = n, coverage
-        lens = models.get("lens")
-        if lens is not None:
+        backdrop = RenderOutput(rgb, torch.ones(H, W), d, torch.zeros(0), torch.zeros(0, 2), 0, W, H)
+        for medium in media:
+            rgb = medium.apply(rgb, backdrop, i, self.settings)
+            if (summary := medium.summary()) is not None:
+                record[medium.name] = summary  # e.g. the fog's β per channel and airlight
+        if models["gaussians"]:
+            rgb, counts, coverage = self._gaussians(models["gaussians"], media, i, rgb, d)
+            record["num_rain_gaussians"], record["rain_coverage"] = sum(counts.values()), coverage
+            record["gaussians_per_model"] = counts
+        for lens in models["lens"]:
             rgb = lens.apply(rgb, backdrop, i, self.settings)
-            record["lens_drops"] = int(getattr(lens, "count", 0))
+            record["lens_drops"] += int(getattr(lens, "count", 0))
         return rgb.clamp(0.0, 1.0).numpy().astype(np.float32, copy=False), record
 
-    def _rain(self, rain: WeatherModel, fog: WeatherModel | None, i: int, rgb: torch.Tensor, depth: torch.Tensor):
-        """Composite view ``i``'s streaks over ``rgb`` (hidden behind the backdrop, fogged by the air in front)."""
-        g = rain.gaussians_for(i)
-        if g is None or len(g) == 0:
-            return rgb, 0, 0.0
+    def _gaussians(
+        self, models: list[WeatherModel], media: list[WeatherModel], i: int, rgb: torch.Tensor, depth: torch.Tensor
+    ) -> tuple[torch.Tensor, dict[str, int], float]:
+        """Composite view ``i``'s weather Gaussians of every model over ``rgb`` (hidden behind the backdrop, fogged by
+        the media in front) -> (image, visible Gaussians per model, their mean coverage)."""
         cam = self.scene.cameras[i]
         H, W = depth.shape
-        w2c = cam.world_to_cameras()[0].to(g.means)
-        p = g.means @ w2c[:3, :3].T + w2c[:3, 3]
-        z = p[:, 2]
-        u = (cam.fx[0] * p[:, 0] / z.clamp_min(1e-9) + cam.cx[0]).floor().long()
-        v = (cam.fy[0] * p[:, 1] / z.clamp_min(1e-9) + cam.cy[0]).floor().long()
-        inside = (u >= 0) & (u < W) & (v >= 0) & (v < H)
-        behind = torch.zeros_like(inside)
-        behind[inside] = z[inside] > depth[v[inside], u[inside]]
-        keep = ~behind
-        g = type(g)(g.means[keep], g.quats[keep], g.scales[keep], g.opacities[keep], g.sh[keep])
-        if len(g) == 0:
-            return rgb, 0, 0.0
-        out = self.rasterizer().render(g, cam, self.settings)
+        w2c = cam.world_to_cameras()[0]
+        sets, counts = [], {}
+        for m in models:
+            g = m.gaussians_for(i)
+            if g is None or len(g) == 0:
+                counts[m.name] = 0
+                continue
+            p = g.means @ w2c[:3, :3].to(g.means).T + w2c[:3, 3].to(g.means)
+            z = p[:, 2]
+            u = (cam.fx[0] * p[:, 0] / z.clamp_min(1e-9) + cam.cx[0]).floor().long()
+            v = (cam.fy[0] * p[:, 1] / z.clamp_min(1e-9) + cam.cy[0]).floor().long()
+            inside = (u >= 0) & (u < W) & (v >= 0) & (v < H)
+            behind = torch.zeros_like(inside)
+            behind[inside] = z[inside] > depth[v[inside], u[inside]]
+            keep = ~behind
+            sets.append(type(g)(g.means[keep], g.quats[keep], g.scales[keep], g.opacities[keep], g.sh[keep]))
+            counts[m.name] = int(keep.sum())
+        sets = [g for g in sets if len(g) > 0]
+        if not sets:
+            return rgb, counts, 0.0
+        out = self.rasterizer().render(GaussianSet.cat(sets) if len(sets) > 1 else sets[0], cam, self.settings)
         visible = (out.depth <= depth).to(out.alpha)
         alpha = out.alpha * visible
         colour = out.rgb * visible[..., None]  # premultiplied (black background)
-        if fog is not None:
-            rays = ray_lengths(cam, H, W)
-            t = torch.exp(-(out.depth * rays * self.mpu)[..., None] * fog.beta_rgb.detach())
-            colour = colour * t + fog.airlight.detach() * alpha[..., None] * (1.0 - t)
+        layer = RenderOutput(colour, alpha, out.depth, torch.zeros(0), torch.zeros(0, 2), 0, W, H)
+        empty = RenderOutput(
+            torch.zeros_like(colour), torch.zeros_like(alpha), out.depth, layer.radii, layer.means2d, 0, W, H
+        )
+        for (
+            medium
+        ) in media:  # the air in front of the layer: what the medium makes of it, less its light where it is empty
+            colour = medium.apply(colour, layer, i, self.settings) - medium.apply(
+                torch.zeros_like(colour), empty, i, self.settings
+            ) * (1.0 - alpha[..., None])
+            layer = RenderOutput(colour, alpha, out.depth, layer.radii, layer.means2d, 0, W, H)
         rgb = rgb * (1.0 - alpha[..., None]) + colour
-        return rgb, int(len(g)), float(alpha.mean())
+        return rgb, counts, float(alpha.mean())

@@ -20,6 +20,7 @@ render.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Annotated, Literal
 
@@ -28,7 +29,7 @@ import torch
 from metegs.meteo.mapping import Theta
 from metegs.render.base import RenderOutput, RenderSettings
 from metegs.validate import NON_NEGATIVE
-from metegs.weather.base import WeatherModel, WeatherModelConfig, WeatherScene
+from metegs.weather.base import SynthesisRequest, WeatherModel, WeatherModelConfig, WeatherScene
 from metegs.weather.medium import choose_airlight, fog_called_for, fog_extinction_rgb
 
 
@@ -67,12 +68,24 @@ class FogAnalyticConfig(WeatherModelConfig):
     layered: bool = True
     """Where the photos measure β (the record prior off), also learn how β changes with height."""
 
+    def for_synthesis(self, request: SynthesisRequest) -> FogAnalyticConfig | None:
+        """The medium of fog, and of rain beyond the streaks' reach (its veil, weather-physics.md) when it rains: fixed,
+        with θ's airlight or the one estimated from the clean views."""
+        rains = "rain" in request.kinds and request.theta.rain.active
+        if "fog" not in request.kinds and not rains:
+            return None
+        airlight = self.airlight
+        if airlight is None and request.theta.fog.airlight_rgb is None:
+            airlight = request.airlight()
+        return dataclasses.replace(self, airlight=airlight, include_rain_veil="rain" in request.kinds, learnable=False)
+
 
 class FogAnalytic(WeatherModel):
     """Exponential fog from depth: ``apply`` turns the rendered view into the foggy one."""
 
     stage = "medium"
     name = "fog-analytic"
+    kind = "fog"
 
     def __init__(self, config: FogAnalyticConfig, theta: Theta, scene: WeatherScene):
         super().__init__(theta, scene)

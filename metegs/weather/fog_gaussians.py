@@ -45,7 +45,7 @@ from metegs.gaussians.sh import rgb_to_sh
 from metegs.meteo.mapping import Theta
 from metegs.meteo.physics import dilogarithm
 from metegs.render.base import ALPHA_MAX, ALPHA_MIN, RenderSettings
-from metegs.weather.base import WeatherModel, WeatherModelConfig, WeatherScene
+from metegs.weather.base import SynthesisRequest, WeatherModel, WeatherModelConfig, WeatherScene
 from metegs.weather.medium import choose_airlight, fog_called_for, fog_extinction_rgb
 
 
@@ -374,12 +374,17 @@ class FogGaussiansConfig(WeatherModelConfig):
     include_rain_veil: bool = True
     """Add the rain's extinction beyond the streaks when it rains."""
 
+    def for_synthesis(self, request: SynthesisRequest) -> None:
+        """Never: `fog-analytic` synthesises the same medium exactly, from each view's depth."""
+        return None
+
 
 class FogGaussians(WeatherModel):
     """A static fog medium (the same Gaussians in every view)."""
 
     stage = "gaussians"
     name = "fog-gaussians"
+    kind = "fog"
 
     def __init__(self, config: FogGaussiansConfig, theta: Theta, scene: WeatherScene):
         super().__init__(theta, scene)

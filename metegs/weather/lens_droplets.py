@@ -11,6 +11,7 @@ forces it (``force``).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 
@@ -19,7 +20,7 @@ import torch.nn.functional as F
 
 from metegs.meteo.mapping import Theta
 from metegs.render.base import RenderOutput, RenderSettings
-from metegs.weather.base import WeatherModel, WeatherModelConfig, WeatherScene
+from metegs.weather.base import SynthesisRequest, WeatherModel, WeatherModelConfig, WeatherScene
 
 
 def box_blur(image: torch.Tensor, radius: int) -> torch.Tensor:
@@ -48,12 +49,20 @@ class LensDropletsConfig(WeatherModelConfig):
     edge_px: float = 1.5
     """Softness of a drop's edge, px."""
 
+    def for_synthesis(self, request: SynthesisRequest) -> LensDropletsConfig | None:
+        """Drops on the glass when they are asked for and it rains: θ_drops' count, else the forced default (drops
+        belong to one camera, not to the scene's weather, and hide much of a view: never added unasked)."""
+        if "drops" not in request.kinds or not request.theta.rain.active:
+            return None
+        return dataclasses.replace(self, force=True)
+
 
 class LensDroplets(WeatherModel):
     """Refractive drops on the glass, per view."""
 
     stage = "lens"
     name = "lens-droplets"
+    kind = "drops"
 
     def __init__(self, config: LensDropletsConfig, theta: Theta, scene: WeatherScene):
         super().__init__(theta, scene)

@@ -66,6 +66,7 @@ class RainStreaks(WeatherModel):
 
     stage = "gaussians"
     name = "rain-streaks"
+    kind = "rain"
     transient = True
 
     def __init__(self, config: RainStreaksConfig, theta: Theta, scene: WeatherScene):
@@ -74,9 +75,7 @@ class RainStreaks(WeatherModel):
         rain = theta.rain
         up = scene.up.detach().double().cpu()
         up = up / up.norm()
-        c2w = scene.cameras.camera_to_worlds.double().cpu()
-        hint = torch.tensor(config.north, dtype=torch.float64) if config.north is not None else c2w[:, :3, 2].mean(0)
-        east, north = horizontal_frame(up, hint)
+        east, north = horizontal_frame(up, scene.north_hint(config.north))
         if rain.velocity_enu_m_per_s is not None:
             e, n, u = rain.velocity_enu_m_per_s
             velocity = e * east + n * north + u * up

@@ -197,15 +197,46 @@ def test_eval_of_the_saved_run_reproduces_its_clean_view_metrics(trained):
     assert m["psnr"] == pytest.approx(metrics["psnr"], abs=1e-3)
 
 
-def test_weather_options_reach_builtin_and_plugin_models_and_bad_ones_are_named(tmp_path):
-    from metegs.errors import ConfigError
+def test_every_registered_weather_model_gets_a_typed_field_and_bad_options_are_named(tmp_path, monkeypatch):
+    from dataclasses import dataclass
 
-    config = tiny_metegs(tmp_path, weather_options={"rain-streaks": {"max_count": 123}})
-    assert config.weather_config("rain-streaks").max_count == 123
-    assert config.weather_config("fog-analytic") is config.fog_analytic
-    bad = tiny_metegs(tmp_path, weather_options={"fog-analytic": {"no_such_field": 1}})
-    with pytest.raises(ConfigError, match="weather_options.fog-analytic"):
-        bad.weather_config("fog-analytic")
+    from metegs.config import apply_overrides, to_dict
+    from metegs.engine.metegs_config import plugin_weather_fields
+    from metegs.engine.run import read_config_file
+    from metegs.errors import ConfigError
+    from metegs.registry import registry
+    from metegs.weather.rain_streaks import RainStreaksConfig
+
+    @dataclass
+    class HailConfig(RainStreaksConfig):
+        """Hail, for this test."""
+
+        stones: int = 7
+        """Stones per view."""
+
+    registry("weather").register("hail-stones", HailConfig)
+    try:
+        cls = plugin_weather_fields(MeteGSConfig)
+        assert cls is not MeteGSConfig and issubclass(cls, MeteGSConfig) and plugin_weather_fields(MeteGSConfig) is cls
+        config = apply_overrides(cls(), {"hail_stones": {"stones": 9}, "rain_streaks": {"max_count": 123}})
+        assert config.weather_config("hail-stones").stones == 9  # from YAML or --hail-stones.stones 9
+        assert config.weather_config("rain-streaks").max_count == 123
+        assert config.weather_config("fog-analytic") is config.fog_analytic
+        assert to_dict(config)["hail_stones"]["stones"] == 9  # config.yml keeps it
+        with pytest.raises(ConfigError, match="hail_stones.no_such_field"):
+            apply_overrides(cls(), {"hail_stones": {"no_such_field": 1}})
+        assert MeteGSConfig().weather_config("hail-stones").stones == 7  # a config without the field: the default
+        old = tmp_path / "config.yml"  # a run saved when options were strings under weather_options
+        old.write_text("method: metegs-full\nweather_options:\n  rain-streaks: {max_count: 55}\n")
+        assert (
+            apply_overrides(cls(), {k: v for k, v in read_config_file(old).items() if k != "method"})
+            .weather_config("rain-streaks")
+            .max_count
+            == 55
+        )
+    finally:
+        registry("weather").unregister("hail-stones")
+    assert plugin_weather_fields(MeteGSConfig) is MeteGSConfig
 
 
 def test_a_medium_too_faint_to_see_at_the_scene_depth_is_left_out(tmp_path):

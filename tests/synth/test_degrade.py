@@ -86,17 +86,19 @@ def test_two_nearby_views_share_the_fog_but_not_the_rain(scene, camera):
     theta = theta_from_values(30.0, visibility_m=300.0, fog_kind="fog", camera=camera)
     rainy, records = degrade_scene(scene, theta, kinds="rain+fog", seed=1)
     streaks, veiled = degrade_scene(scene, theta, kinds="rain", seed=1)  # the same streaks in the rain's veil alone
-    airlight = np.array(records[0]["airlight_rgb"], np.float32)
-    beta = float(np.mean(records[0]["fog_beta_rgb_per_m"]))
-    assert records[1]["airlight_rgb"] == records[0]["airlight_rgb"]
-    assert beta == pytest.approx(float(np.mean(theta.fog.beta_rgb_per_m)) + theta.fog.beta_rain_per_m)  # + rain veil
+    fog = records[0]["fog-analytic"]  # the medium's summary, as in metrics.json (β to 1e-6 /m, airlight to 1e-4)
+    airlight = np.array(fog["airlight"], np.float32)
+    beta = float(np.mean(fog["beta_per_m"]))
+    assert records[1]["fog-analytic"] == fog
+    expected = float(np.mean(theta.fog.beta_rgb_per_m)) + theta.fog.beta_rain_per_m  # + rain veil
+    assert beta == pytest.approx(expected, abs=1e-6)
     masks, betas = [], []
     for v in (0, 1):
         rays = ray_lengths(scene.cameras[v], *scene.depths[v].shape).numpy()
         distance = scene.depths[v] * rays * scene.metric_scale
         veil = fog_composite(
             torch.from_numpy(scene.images[v]), torch.ones(distance.shape), torch.from_numpy(distance),
-            torch.tensor(veiled[v]["fog_beta_rgb_per_m"]), torch.tensor(veiled[v]["airlight_rgb"]),
+            torch.tensor(veiled[v]["fog-analytic"]["beta_per_m"]), torch.tensor(veiled[v]["fog-analytic"]["airlight"]),
         ).numpy()  # fmt: skip
         rain = np.abs(streaks.images[v] - veil).max(-1) > 1 / 255
         assert 0.001 < rain.mean() < 0.5

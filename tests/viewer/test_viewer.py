@@ -173,7 +173,7 @@ def test_browser_precipitation_slider(viewer, tmp_path, record_property):
         assert _not_blank(before), "the first frame is blank"
 
         # the precipitation slider, found by its label, moved with the keyboard as a user would
-        label = driver.find_element(By.XPATH, "//label[normalize-space(.)='Rain (log mm/h)']")
+        label = driver.find_element(By.XPATH, "//label[normalize-space(.)='Precipitation (log mm/h)']")
         thumb = driver.find_element(By.CSS_SELECTOR, f"[id='{label.get_attribute('for')}'] [role=slider]")
         count = viewer.stats.count
         thumb.click()

@@ -19,13 +19,13 @@ import codecs
 import dataclasses
 import math
 import re
-import types
 import typing
 import warnings
 from datetime import datetime, timedelta, timezone, tzinfo
 from pathlib import Path
 from typing import Any, ClassVar, Literal
 
+from metegs.config import coerce
 from metegs.errors import ConfigError, DataError
 from metegs.meteo import limits
 from metegs.meteo.observations import Observation, ObservationTable, epoch_s
@@ -160,50 +160,6 @@ def resolve_timezone(name: str | None) -> tzinfo:
         ) from exc
 
 
-def _coerce_option(value: Any, annotation: Any, where: str) -> Any:
-    """Options given as strings (from the command line) converted to the option's type."""
-    origin = typing.get_origin(annotation)
-    args = typing.get_args(annotation)
-    if origin in (typing.Union, types.UnionType):
-        if value is None or (isinstance(value, str) and value.lower() in ("none", "null") and type(None) in args):
-            return None
-        errors = []
-        for arg in args:
-            if arg is type(None):
-                continue
-            try:
-                return _coerce_option(value, arg, where)
-            except ConfigError as exc:
-                errors.append(str(exc))
-        raise ConfigError(errors[0] if errors else f"{where}: bad value {value!r}")
-    if origin is Literal:
-        if value not in args:
-            raise ConfigError(f"{where}: {value!r} is not one of {', '.join(map(repr, args))}")
-        return value
-    if origin is tuple:
-        if isinstance(value, str):
-            value = [v.strip() for v in value.split(",")] if value else []
-        inner = args[0] if args else str
-        return tuple(_coerce_option(v, inner, where) for v in value)
-    if annotation is bool:
-        if isinstance(value, str):
-            if value.lower() in ("1", "true", "yes", "on"):
-                return True
-            if value.lower() in ("0", "false", "no", "off"):
-                return False
-            raise ConfigError(f"{where}: {value!r} is not true/false")
-        return bool(value)
-    if annotation in (int, float):
-        try:
-            out = annotation(value)
-        except (TypeError, ValueError):
-            raise ConfigError(f"{where}: {value!r} is not a{'n integer' if annotation is int else ' number'}") from None
-        return out
-    if annotation is str:
-        return str(value)
-    return value
-
-
 def make_options(cls: type, options: dict[str, Any], reader: str) -> Any:
     """Build the reader's option dataclass; unknown names and bad values give a ConfigError listing the valid options."""
     hints = typing.get_type_hints(cls)
@@ -212,7 +168,7 @@ def make_options(cls: type, options: dict[str, Any], reader: str) -> Any:
     for key, value in options.items():
         if key not in names:
             raise ConfigError(f"reader {reader!r} has no option {key!r}; options: {', '.join(names)}")
-        kwargs[key] = _coerce_option(value, hints[key], f"reader {reader!r} option {key!r}")
+        kwargs[key] = coerce(value, hints[key], f"reader {reader!r} option {key!r}", text=True)
     try:
         return cls(**kwargs)
     except (TypeError, ValueError) as exc:

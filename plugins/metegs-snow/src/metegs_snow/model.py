@@ -142,6 +142,7 @@ class Snow(WeatherModel):
 
     stage = "gaussians"
     name = "snow"
+    kind = "snow"
     transient = True
 
     def __init__(self, config: SnowConfig, theta: Theta, scene: WeatherScene):
@@ -172,9 +173,7 @@ class Snow(WeatherModel):
         p = self.params
         up = scene.up.detach().double().cpu()
         up = up / up.norm()
-        c2w = scene.cameras.camera_to_worlds.double().cpu()
-        hint = torch.tensor(config.north, dtype=torch.float64) if config.north is not None else c2w[:, :3, 2].mean(0)
-        east, north = horizontal_frame(up, hint)
+        east, north = horizontal_frame(up, scene.north_hint(config.north))
         if p.wind_dir_to_deg is not None:
             a = math.radians(p.wind_dir_to_deg)
             wind = p.wind_m_s * (math.sin(a) * east + math.cos(a) * north)
