@@ -31,6 +31,6 @@ def _no_downloads(monkeypatch):
 
     monkeypatch.setattr(torch.hub, "load_state_dict_from_url", offline)
     monkeypatch.setattr(torch.hub, "download_url_to_file", offline)
-    from metegs.eval import lpips
+    from metegs.eval import backbones
 
-    monkeypatch.setattr(lpips, "_FAILED_DOWNLOADS", {})
+    monkeypatch.setattr(backbones, "FAILED_DOWNLOADS", {})

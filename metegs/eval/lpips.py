@@ -12,7 +12,8 @@ with ``normalize=True``):
 
 Weights come in two parts, neither of which is ever replaced by a substitute:
 
-- **Backbone**: torchvision ImageNet checkpoints. Our `alexnet_features` / `vgg16_features` have the same
+- **Backbone** (`metegs.eval.backbones`, shared with the perceptual loss): torchvision ImageNet checkpoints.
+  Our `alexnet_features` / `vgg16_features` have the same
   layer structure and state-dict keys as torchvision's ``alexnet().features`` / ``vgg16().features``, so a
   torchvision file (full model, keys ``features.*``/``classifier.*``, or features only) loads directly.
   Looked up, in order: the ``backbone_path`` argument, the ``METEGS_LPIPS_BACKBONE`` env var (a file, or a
@@ -35,14 +36,23 @@ from __future__ import annotations
 
 import importlib.util
 import os
-from collections.abc import Callable, Mapping
-from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 from torch import nn
 
-from metegs.errors import MetegsError
+from metegs.eval.backbones import (
+    BACKBONE_ENV,
+    WeightsUnavailable,
+    alexnet_features,
+    backbone_spec,
+    backbone_state,
+    download_backbone,
+    file_in,
+    read_state_dict,
+    resolve_backbone_file,
+    vgg16_features,
+)
 
 __all__ = [
     "BACKBONE_ENV",
@@ -59,106 +69,11 @@ __all__ = [
     "vgg16_features",
 ]
 
-BACKBONE_ENV = "METEGS_LPIPS_BACKBONE"
 HEADS_ENV = "METEGS_LPIPS_HEADS"
 
 _SHIFT = (-0.030, -0.088, -0.188)
 _SCALE = (0.458, 0.448, 0.450)
 _EPS = 1e-10
-
-
-class WeightsUnavailable(MetegsError):
-    """LPIPS weights (backbone or linear heads) cannot be found or loaded.
-
-    Attributes:
-        net: ``"alex"`` or ``"vgg"``.
-        part: ``"backbone"`` or ``"heads"``.
-        reason: human-readable explanation, including where the file was looked for and how to provide it.
-    """
-
-    def __init__(self, net: str, part: str, reason: str):
-        self.net = net
-        self.part = part
-        self.reason = reason
-        super().__init__(f"LPIPS-{net} {part} weights unavailable: {reason}")
-
-
-# --------------------------------------------------------------------------------------------- backbones
-
-
-def alexnet_features() -> nn.Sequential:
-    """AlexNet feature extractor, layer-for-layer identical to torchvision ``alexnet().features``.
-
-    Input ``[N, 3, H, W]``; state-dict keys ``{0,3,6,8,10}.{weight,bias}``.
-    """
-    return nn.Sequential(
-        nn.Conv2d(3, 64, kernel_size=11, stride=4, padding=2),
-        nn.ReLU(),
-        nn.MaxPool2d(kernel_size=3, stride=2),
-        nn.Conv2d(64, 192, kernel_size=5, padding=2),
-        nn.ReLU(),
-        nn.MaxPool2d(kernel_size=3, stride=2),
-        nn.Conv2d(192, 384, kernel_size=3, padding=1),
-        nn.ReLU(),
-        nn.Conv2d(384, 256, kernel_size=3, padding=1),
-        nn.ReLU(),
-        nn.Conv2d(256, 256, kernel_size=3, padding=1),
-        nn.ReLU(),
-        nn.MaxPool2d(kernel_size=3, stride=2),
-    )
-
-
-_VGG16_CFG = (64, 64, "M", 128, 128, "M", 256, 256, 256, "M", 512, 512, 512, "M", 512, 512, 512, "M")
-
-
-def vgg16_features() -> nn.Sequential:
-    """VGG16 (no batch norm) feature extractor, identical to torchvision ``vgg16().features`` (31 modules).
-
-    Input ``[N, 3, H, W]``; state-dict keys ``{0,2,5,7,10,...,28}.{weight,bias}``.
-    """
-    layers: list[nn.Module] = []
-    in_ch = 3
-    for v in _VGG16_CFG:
-        if v == "M":
-            layers.append(nn.MaxPool2d(kernel_size=2, stride=2))
-        else:
-            layers += [nn.Conv2d(in_ch, int(v), kernel_size=3, padding=1), nn.ReLU()]
-            in_ch = int(v)
-    return nn.Sequential(*layers)
-
-
-@dataclass(frozen=True)
-class _NetSpec:
-    filename: str
-    url: str
-    build: Callable[[], nn.Sequential]
-    # exclusive end index (into the Sequential) of each of the 5 LPIPS slices, as the official package
-    slice_ends: tuple[int, ...]
-    channels: tuple[int, ...]
-
-
-_NETS: dict[str, _NetSpec] = {
-    "alex": _NetSpec(
-        "alexnet-owt-7be5be79.pth",
-        "https://download.pytorch.org/models/alexnet-owt-7be5be79.pth",
-        alexnet_features,
-        (2, 5, 8, 10, 12),
-        (64, 192, 384, 256, 256),
-    ),
-    "vgg": _NetSpec(
-        "vgg16-397923af.pth",
-        "https://download.pytorch.org/models/vgg16-397923af.pth",
-        vgg16_features,
-        (4, 9, 16, 23, 30),
-        (64, 128, 256, 512, 512),
-    ),
-}
-
-
-def _spec(net: str) -> _NetSpec:
-    if net not in _NETS:
-        raise ValueError(f"LPIPS net must be one of {sorted(_NETS)}, got {net!r}")
-    return _NETS[net]
 
 
 # ------------------------------------------------------------------------------------------------ module
@@ -204,7 +119,7 @@ class LPIPS(nn.Module):
 
     def __init__(self, net: str = "alex"):
         super().__init__()
-        spec = _spec(net)
+        spec = backbone_spec(net)
         self.net = net
         self._slice_ends = spec.slice_ends
         self.register_buffer("shift", torch.tensor(_SHIFT).view(1, 3, 1, 1), persistent=False)
@@ -232,16 +147,18 @@ class LPIPS(nn.Module):
             ``[N]`` distances.
         """
         if x0.shape != x1.shape or x0.ndim != 4 or x0.shape[1] != 3:
-            raise ValueError(f"expected two [N, 3, H, W] tensors of equal shape, got {tuple(x0.shape)}, "
-                             f"{tuple(x1.shape)}")
+            raise ValueError(
+                f"expected two [N, 3, H, W] tensors of equal shape, got {tuple(x0.shape)}, {tuple(x1.shape)}"
+            )
         dtype = self.shift.dtype
         x0 = (x0.to(dtype) - self.shift) / self.scale
         x1 = (x1.to(dtype) - self.shift) / self.scale
         try:
             f0, f1 = self._layer_features(x0), self._layer_features(x1)
         except RuntimeError as e:
-            raise ValueError(f"LPIPS-{self.net}: image of size {tuple(x0.shape[-2:])} is too small for the "
-                             f"backbone ({e})") from e
+            raise ValueError(
+                f"LPIPS-{self.net}: image of size {tuple(x0.shape[-2:])} is too small for the backbone ({e})"
+            ) from e
         total = x0.new_zeros(x0.shape[0])
         for i, (a, b) in enumerate(zip(f0, f1, strict=True)):
             a = a / (a.pow(2).sum(dim=1, keepdim=True).sqrt() + _EPS)
@@ -259,8 +176,9 @@ class LPIPS(nn.Module):
             distances of shape ``[...]`` (a scalar for a single ``[H, W, 3]`` image).
         """
         if pred.shape != target.shape or pred.ndim < 3 or pred.shape[-1] != 3:
-            raise ValueError(f"expected two [..., H, W, 3] tensors of equal shape, got {tuple(pred.shape)}, "
-                             f"{tuple(target.shape)}")
+            raise ValueError(
+                f"expected two [..., H, W, 3] tensors of equal shape, got {tuple(pred.shape)}, {tuple(target.shape)}"
+            )
         batch = pred.shape[:-3]
         h, w = pred.shape[-3:-1]
         x0 = pred.reshape(-1, h, w, 3).permute(0, 3, 1, 2) * 2 - 1
@@ -280,47 +198,6 @@ def packaged_heads_dir() -> Path | None:
     return Path(next(iter(spec.submodule_search_locations))) / "functional" / "image" / "lpips_models"
 
 
-def _how_to_provide_backbone(spec: _NetSpec) -> str:
-    cache = Path(torch.hub.get_dir()) / "checkpoints" / spec.filename
-    return (f"provide the torchvision checkpoint {spec.filename} ({spec.url}) by placing it at {cache}, "
-            f"passing backbone_path=..., or setting {BACKBONE_ENV}=/path/to/{spec.filename}")
-
-
-def _file_in(path: Path, names: list[str]) -> Path | None:
-    """``path`` itself if it is a file, else the first existing ``path / name``."""
-    if path.is_file():
-        return path
-    if path.is_dir():
-        for name in names:
-            if (path / name).is_file():
-                return path / name
-    return None
-
-
-def resolve_backbone_file(net: str = "alex", backbone_path: str | Path | None = None) -> Path:
-    """Find the torchvision backbone checkpoint on disk (no download).
-
-    Order: ``backbone_path`` (file, or folder holding the torchvision file name), ``$METEGS_LPIPS_BACKBONE``,
-    ``torch.hub.get_dir()/checkpoints/<file>``.
-
-    Raises:
-        WeightsUnavailable: not found; the message lists the places tried and how to provide the file.
-    """
-    spec = _spec(net)
-    for source, given in (("backbone_path", backbone_path), (BACKBONE_ENV, os.environ.get(BACKBONE_ENV))):
-        if given:
-            found = _file_in(Path(given).expanduser(), [spec.filename])
-            if found is None:
-                raise WeightsUnavailable(net, "backbone", f"{source}={given} is not {spec.filename} nor a folder "
-                                         f"holding it; {_how_to_provide_backbone(spec)}")
-            return found
-    cached = Path(torch.hub.get_dir()) / "checkpoints" / spec.filename
-    if cached.is_file():
-        return cached
-    raise WeightsUnavailable(net, "backbone", f"{spec.filename} not found in the torch hub cache "
-                             f"({cached.parent}); {_how_to_provide_backbone(spec)}")
-
-
 def resolve_heads_file(net: str = "alex", heads_dir: str | Path | None = None, version: str = "0.1") -> Path:
     """Find the official LPIPS linear-heads file ``<net>.pth``.
 
@@ -330,63 +207,30 @@ def resolve_heads_file(net: str = "alex", heads_dir: str | Path | None = None, v
     Raises:
         WeightsUnavailable: not found.
     """
-    _spec(net)
+    backbone_spec(net)
     names = [f"{net}.pth", f"v{version}/{net}.pth", f"weights/v{version}/{net}.pth"]
-    how = (f"pass heads_dir=... or set {HEADS_ENV} to the official lpips v{version} '{net}.pth' (from the lpips "
-           f"package, lpips/weights/v{version}/{net}.pth) or a folder holding it")
+    how = (
+        f"pass heads_dir=... or set {HEADS_ENV} to the official lpips v{version} '{net}.pth' (from the lpips "
+        f"package, lpips/weights/v{version}/{net}.pth) or a folder holding it"
+    )
     for source, given in (("heads_dir", heads_dir), (HEADS_ENV, os.environ.get(HEADS_ENV))):
         if given:
-            found = _file_in(Path(given).expanduser(), names)
+            found = file_in(Path(given).expanduser(), names)
             if found is None:
                 raise WeightsUnavailable(net, "heads", f"{source}={given} holds none of {names}; {how}")
             return found
     default = packaged_heads_dir()
     if default is None:
-        raise WeightsUnavailable(net, "heads", f"the torchmetrics package is not installed (pip install torchmetrics); "
-                                 f"or {how}")
-    found = _file_in(default, names)
+        raise WeightsUnavailable(
+            net, "heads", f"the torchmetrics package is not installed (pip install torchmetrics); or {how}"
+        )
+    found = file_in(default, names)
     if found is None:
         raise WeightsUnavailable(net, "heads", f"none of {names} under {default}; {how}")
     return found
 
 
 # ------------------------------------------------------------------------------------------------ loading
-
-
-def _torch_load(path: Path, net: str, part: str) -> Mapping[str, torch.Tensor]:
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as e:  # corrupt / truncated / not a torch file
-        raise WeightsUnavailable(net, part, f"cannot read {path}: {type(e).__name__}: {e}") from e
-    if not isinstance(state, Mapping):
-        raise WeightsUnavailable(net, part, f"{path} does not hold a state dict (got {type(state).__name__})")
-    return state
-
-
-def _backbone_state(state: Mapping[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-    """Features-only keys from a torchvision full-model or features-only state dict."""
-    if "state_dict" in state and isinstance(state["state_dict"], Mapping):
-        state = state["state_dict"]
-    if any(k.startswith("features.") for k in state):
-        return {k[len("features."):]: v for k, v in state.items() if k.startswith("features.")}
-    return dict(state)
-
-
-_FAILED_DOWNLOADS: dict[str, str] = {}
-"""Why each URL could not be downloaded in this process: it is not tried again (one message, no retries)."""
-
-
-def _download_backbone(spec: _NetSpec, net: str, how: str | None = None) -> Mapping[str, torch.Tensor]:
-    """The backbone's torchvision state dict, downloaded into the torch hub cache; a failure (remembered for the
-    process) raises `WeightsUnavailable` ending with ``how`` to provide the file (default: LPIPS's own advice)."""
-    if spec.url not in _FAILED_DOWNLOADS:
-        try:
-            return torch.hub.load_state_dict_from_url(spec.url, map_location="cpu", progress=True, check_hash=True,
-                                                      weights_only=True)
-        except Exception as e:  # offline (URLError), hash mismatch, disk full...
-            _FAILED_DOWNLOADS[spec.url] = f"{type(e).__name__}: {e}"
-    raise WeightsUnavailable(net, "backbone", f"{spec.filename} is not in the torch hub cache and its download from "
-                             f"{spec.url} failed ({_FAILED_DOWNLOADS[spec.url]}); {how or _how_to_provide_backbone(spec)}")
 
 
 def load_lpips(
@@ -408,22 +252,23 @@ def load_lpips(
     Raises:
         WeightsUnavailable: a file is missing, unreadable, or does not match the architecture.
     """
-    spec = _spec(net)
+    spec = backbone_spec(net)
     try:
-        state = _torch_load(resolve_backbone_file(net, backbone_path), net, "backbone")
+        state = read_state_dict(resolve_backbone_file(net, backbone_path), net, "backbone")
     except WeightsUnavailable:
         if not allow_download or backbone_path or os.environ.get(BACKBONE_ENV):
             raise
-        state = _download_backbone(spec, net)
+        state = download_backbone(spec, net)
     heads_file = resolve_heads_file(net, heads_dir)
-    heads_state = _torch_load(heads_file, net, "heads")
+    heads_state = read_state_dict(heads_file, net, "heads")
 
     model = LPIPS(net)
     try:
-        model.features.load_state_dict(_backbone_state(state), strict=True)
+        model.features.load_state_dict(backbone_state(state), strict=True)
     except RuntimeError as e:
-        raise WeightsUnavailable(net, "backbone", f"checkpoint does not match the {net} backbone "
-                                 f"({spec.filename} expected): {e}") from e
+        raise WeightsUnavailable(
+            net, "backbone", f"checkpoint does not match the {net} backbone ({spec.filename} expected): {e}"
+        ) from e
     try:
         model.heads.load_state_dict(dict(heads_state), strict=True)
     except RuntimeError as e:
@@ -466,10 +311,15 @@ def lpips(
     Raises:
         WeightsUnavailable: weights missing (never substituted).
     """
-    key = (net, str(backbone_path), str(heads_dir), os.environ.get(BACKBONE_ENV), os.environ.get(HEADS_ENV),
-           torch.hub.get_dir())
+    key = (
+        net,
+        str(backbone_path),
+        str(heads_dir),
+        os.environ.get(BACKBONE_ENV),
+        os.environ.get(HEADS_ENV),
+        torch.hub.get_dir(),
+    )
     if key not in _CACHE:
         _CACHE[key] = load_lpips(net, backbone_path, heads_dir, allow_download)
     model = _CACHE[key].to(pred.device)
     return model(pred, target).mean()
-

@@ -50,12 +50,12 @@ from torch.nn import functional as F
 
 from metegs.config import InstantiateConfig, user_cache
 from metegs.errors import ConfigError, DataError
-from metegs.eval.lpips import (
-    _NETS,
-    _VGG16_CFG,
+from metegs.eval.backbones import (
+    BACKBONES,
+    VGG16_CFG,
     WeightsUnavailable,
-    _backbone_state,
-    _download_backbone,
+    backbone_state,
+    download_backbone,
     vgg16_features,
 )
 from metegs.losses.squeezenet import (
@@ -90,7 +90,7 @@ def _vgg16_layer_indices() -> dict[str, int]:
     """``relu<block>_<conv>`` -> index of that ReLU in torchvision's ``vgg16().features``."""
     names: dict[str, int] = {}
     index, block, conv = 0, 1, 0
-    for v in _VGG16_CFG:
+    for v in VGG16_CFG:
         if v == "M":
             index += 1
             block, conv = block + 1, 0
@@ -147,7 +147,7 @@ def user_weights_dir() -> Path:
 
 
 def _vgg_cache_file() -> Path:
-    return Path(torch.hub.get_dir()) / "checkpoints" / _NETS["vgg"].filename
+    return Path(torch.hub.get_dir()) / "checkpoints" / BACKBONES["vgg"].filename
 
 
 def _kind_of(path: Path) -> str:
@@ -165,7 +165,7 @@ def _first(folder: Path, patterns: tuple[str, ...]) -> Path | None:
 
 
 def _how_to_provide(backbone: str = "auto") -> str:
-    spec = _NETS["vgg"]
+    spec = BACKBONES["vgg"]
     vgg = f"place {spec.filename} ({spec.url}) in {_vgg_cache_file().parent}"
     sqz = f"place a squeezenet1.1*.mat in {user_weights_dir()}"
     what = {
@@ -196,7 +196,7 @@ def resolve_weights(config: PerceptualLossConfig) -> tuple[str, Path | None]:
             continue
         path = Path(given).expanduser()
         if path.is_dir():
-            vgg = (_NETS["vgg"].filename, "*.pth", "*.pt")
+            vgg = (BACKBONES["vgg"].filename, "*.pth", "*.pt")
             sqz = (*SQUEEZENET_GLOBS, "*.mat")
             order = {"vgg16": (vgg,), "squeezenet": (sqz,), "auto": (vgg, sqz)}[want]
             found = next((f for patterns in order if (f := _first(path, patterns)) is not None), None)
@@ -232,10 +232,10 @@ def resolve_weights(config: PerceptualLossConfig) -> tuple[str, Path | None]:
 
 
 def _load_vgg16(path: Path | None, backbone: str = "vgg16") -> tuple[nn.Sequential, str]:
-    spec = _NETS["vgg"]
+    spec = BACKBONES["vgg"]
     if path is None:
         try:
-            state = _download_backbone(spec, "vgg", _how_to_provide(backbone))
+            state = download_backbone(spec, "vgg", _how_to_provide(backbone))
         except WeightsUnavailable as e:  # offline, hash mismatch, disk full
             raise PerceptualWeightsUnavailable(e.reason) from e
         where = f"{spec.url} (cached in {_vgg_cache_file().parent})"
@@ -249,7 +249,7 @@ def _load_vgg16(path: Path | None, backbone: str = "vgg16") -> tuple[nn.Sequenti
         where = str(path)
     features = vgg16_features()
     try:
-        features.load_state_dict(_backbone_state(state), strict=True)
+        features.load_state_dict(backbone_state(state), strict=True)
     except RuntimeError as e:
         raise DataError(path or spec.url, f"does not match torchvision's VGG16 features: {e}") from e
     return features, where

@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field, replace
-from datetime import datetime, timezone
+from datetime import datetime, timedelta, timezone, tzinfo
 
 import numpy as np
 
-from metegs.errors import DataError
+from metegs.errors import ConfigError, DataError
 from metegs.meteo.weather_codes import PresentWeather
 
 UTC = timezone.utc
@@ -110,6 +111,27 @@ def from_epoch_s(s: float) -> datetime:
     return datetime.fromtimestamp(s, tz=UTC)
 
 
+_OFFSET = re.compile(r"^(?:UTC|GMT)?\s*([+-])(\d{1,2})(?::?(\d{2}))?$", re.IGNORECASE)
+
+
+def resolve_timezone(name: str | None) -> tzinfo:
+    """A tzinfo for ``UTC``, a fixed offset (``UTC+8``, ``+08:00``, ``-0500``) or an IANA name (``Asia/Shanghai``)."""
+    if name is None or name.strip().upper() in ("", "UTC", "Z", "GMT"):
+        return timezone.utc
+    m = _OFFSET.match(name.strip())
+    if m:
+        sign = 1 if m.group(1) == "+" else -1
+        return timezone(sign * timedelta(hours=int(m.group(2)), minutes=int(m.group(3) or 0)))
+    try:
+        from zoneinfo import ZoneInfo
+
+        return ZoneInfo(name.strip())
+    except Exception as exc:  # noqa: BLE001 - ZoneInfoNotFoundError, ValueError
+        raise ConfigError(
+            f"unknown time zone {name!r}: use UTC, an offset such as UTC+8, or an IANA name such as Asia/Shanghai"
+        ) from exc
+
+
 def parse_time(text: str | datetime, *, default_tz: str | None = None) -> datetime:
     """An ISO-8601 time (``2013-08-11T07:40Z``, ``2013-08-11 15:40+08:00``) as aware UTC.
 
@@ -126,8 +148,6 @@ def parse_time(text: str | datetime, *, default_tz: str | None = None) -> dateti
         except ValueError as exc:
             raise DataError(None, f"cannot read time {text!r}: write ISO 8601, e.g. 2013-08-11T07:40Z") from exc
     if t.tzinfo is None and default_tz:
-        from metegs.meteo.readers.base import resolve_timezone
-
         t = t.replace(tzinfo=resolve_timezone(default_tz))
     return to_utc(t)
 

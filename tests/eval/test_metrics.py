@@ -11,6 +11,7 @@ import torch
 from skimage.metrics import structural_similarity
 
 from metegs.errors import MetegsError
+from metegs.eval import backbones
 from metegs.eval import lpips as lp
 from metegs.eval.metrics import evaluate_images, psnr, ssim, ssim_map
 
@@ -135,7 +136,7 @@ SHARED_HEADS = Path(__file__).resolve().parents[3] / "shared" / "data" / "weight
 def _write_fake_weights(tmp_path: Path, net: str) -> tuple[Path, Path]:
     """Random backbone saved as a torchvision full-model state dict, and random heads in the official format."""
     torch.manual_seed(0)
-    spec = lp._NETS[net]
+    spec = backbones.BACKBONES[net]
     features = spec.build()
     state = {f"features.{k}": v for k, v in features.state_dict().items()}
     state["classifier.1.weight"] = torch.zeros(4, 4)  # torchvision files also hold the classifier: ignored
@@ -200,7 +201,7 @@ def test_lpips_env_vars_and_functional(tmp_path, empty_hub, monkeypatch):
 
 
 def test_lpips_hub_cache_is_used(tmp_path, empty_hub):
-    spec = lp._NETS["alex"]
+    spec = backbones.BACKBONES["alex"]
     backbone, heads_dir = _write_fake_weights(tmp_path, "alex")
     (empty_hub / "checkpoints").mkdir(parents=True)
     backbone.rename(empty_hub / "checkpoints" / spec.filename)
@@ -263,10 +264,10 @@ def test_lpips_backbone_downloads_on_first_use_is_tried_once_offline_and_never_w
     backbone, heads_dir = _write_fake_weights(tmp_path, "alex")
     assert lp.try_load_lpips("alex", heads_dir=heads_dir, allow_download=False)[0] is None and not calls
     model, reason = lp.try_load_lpips("alex", heads_dir=heads_dir)
-    assert model is None and calls == [lp._NETS["alex"].url]
+    assert model is None and calls == [backbones.BACKBONES["alex"].url]
     assert "download" in reason and "network unreachable" in reason and str(empty_hub / "checkpoints") in reason
     assert lp.try_load_lpips("alex", heads_dir=heads_dir)[1] == reason and len(calls) == 1  # one try per process
-    monkeypatch.setattr(lp, "_FAILED_DOWNLOADS", {})  # a new process, online: torchvision's own file arrives
+    monkeypatch.setattr(backbones, "FAILED_DOWNLOADS", {})  # a new process, online: torchvision's own file arrives
     state = torch.load(backbone, weights_only=True)
     monkeypatch.setattr(torch.hub, "load_state_dict_from_url", lambda url, **kwargs: calls.append(url) or state)
     model, reason = lp.try_load_lpips("alex", heads_dir=heads_dir)
@@ -292,7 +293,7 @@ def test_the_packaged_official_heads_load_by_default(tmp_path, empty_hub, net):
     model.heads.load_state_dict(heads)  # official key names and shapes
     assert all((h >= 0).all() for h in heads.values())  # LPIPS v0.1 heads are non-negative
     # full path: random backbone from a file + the real heads found by default
-    spec = lp._NETS[net]
+    spec = backbones.BACKBONES[net]
     torch.save(spec.build().state_dict(), tmp_path / spec.filename)
     model, reason = lp.try_load_lpips(net, backbone_path=tmp_path / spec.filename)
     assert reason is None

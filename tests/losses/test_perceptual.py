@@ -11,6 +11,7 @@ import torch.nn.functional as F
 from scipy.io import savemat
 
 from metegs.errors import ConfigError, DataError
+from metegs.eval import backbones
 from metegs.eval import lpips as lp
 from metegs.losses import perceptual as perc
 from metegs.losses.perceptual import PerceptualLoss, PerceptualLossConfig, try_load_perceptual
@@ -226,18 +227,18 @@ def test_vgg16_downloads_on_first_use_once_per_process_and_never_when_off(no_wei
     monkeypatch.setattr(torch.hub, "load_state_dict_from_url", offline)
     assert try_load_perceptual(PerceptualLossConfig(backbone="vgg16", download=False))[0] is None and not calls
     loss, reason = try_load_perceptual(PerceptualLossConfig(backbone="vgg16"))
-    assert loss is None and calls == [lp._NETS["vgg"].url]
+    assert loss is None and calls == [backbones.BACKBONES["vgg"].url]
     assert "download" in reason and "network unreachable" in reason
     cache = no_weights / "cache" / "metegs" / "weights"
     cache.mkdir(parents=True)
     write_random_mat(cache / "squeezenet1.1.mat")
     loss, reason = try_load_perceptual(PerceptualLossConfig())  # auto: no SqueezeNet fallback, and no second try
     assert loss is None and "network unreachable" in reason and len(calls) == 1
-    monkeypatch.setattr(lp, "_FAILED_DOWNLOADS", {})  # a new process, online
+    monkeypatch.setattr(backbones, "FAILED_DOWNLOADS", {})  # a new process, online
     state = {f"features.{k}": v for k, v in lp.vgg16_features().state_dict().items()}
     monkeypatch.setattr(torch.hub, "load_state_dict_from_url", lambda url, **kwargs: calls.append(url) or state)
     loss, reason = try_load_perceptual(PerceptualLossConfig())
-    assert reason is None and loss.backbone_name == "vgg16" and loss.source.startswith(lp._NETS["vgg"].url)
+    assert reason is None and loss.backbone_name == "vgg16" and loss.source.startswith(backbones.BACKBONES["vgg"].url)
 
 
 def test_bad_config_is_an_error(tmp_path):

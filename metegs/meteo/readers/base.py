@@ -21,7 +21,7 @@ import math
 import re
 import typing
 import warnings
-from datetime import datetime, timedelta, timezone, tzinfo
+from datetime import datetime, timezone, tzinfo
 from pathlib import Path
 from typing import Any, ClassVar, Literal
 
@@ -137,27 +137,6 @@ def check_precip(value_mm: float, field: str) -> float:
     if value_mm < 0:
         raise RecordError(field, f"negative precipitation {value_mm:g} mm")
     return value_mm
-
-
-_OFFSET = re.compile(r"^(?:UTC|GMT)?\s*([+-])(\d{1,2})(?::?(\d{2}))?$", re.IGNORECASE)
-
-
-def resolve_timezone(name: str | None) -> tzinfo:
-    """A tzinfo for ``UTC``, a fixed offset (``UTC+8``, ``+08:00``, ``-0500``) or an IANA name (``Asia/Shanghai``)."""
-    if name is None or name.strip().upper() in ("", "UTC", "Z", "GMT"):
-        return timezone.utc
-    m = _OFFSET.match(name.strip())
-    if m:
-        sign = 1 if m.group(1) == "+" else -1
-        return timezone(sign * timedelta(hours=int(m.group(2)), minutes=int(m.group(3) or 0)))
-    try:
-        from zoneinfo import ZoneInfo
-
-        return ZoneInfo(name.strip())
-    except Exception as exc:  # noqa: BLE001 - ZoneInfoNotFoundError, ValueError
-        raise ConfigError(
-            f"unknown time zone {name!r}: use UTC, an offset such as UTC+8, or an IANA name such as Asia/Shanghai"
-        ) from exc
 
 
 def make_options(cls: type, options: dict[str, Any], reader: str) -> Any:

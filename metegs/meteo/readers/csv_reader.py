@@ -25,7 +25,7 @@ from typing import Any, Literal
 
 from metegs.errors import ConfigError, DataError
 from metegs.meteo import units
-from metegs.meteo.observations import Accumulation, Observation
+from metegs.meteo.observations import Accumulation, Observation, resolve_timezone
 from metegs.meteo.readers.base import (
     CommonOptions,
     ObservationReader,
@@ -35,7 +35,6 @@ from metegs.meteo.readers.base import (
     decode_text,
     finite_number,
     read_text,
-    resolve_timezone,
 )
 from metegs.meteo.storm import PRSA_COLUMNS, STORM_READER_OPTIONS
 from metegs.meteo.weather_codes import parse_weather_token
