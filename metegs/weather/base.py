@@ -90,6 +90,12 @@ class WeatherModel(torch.nn.Module):
         """Image-space effect: rgb [H, W, 3] (already composited) -> [H, W, 3]."""
         return rgb
 
+    def seen_through(self, colour: torch.Tensor, alpha: torch.Tensor, depth: torch.Tensor, view: int) -> torch.Tensor:
+        """A layer in front of a view's backdrop (premultiplied colour [H, W, 3], alpha [H, W], camera depth [H, W])
+        as seen through this medium: its light attenuated and the light the medium scatters in front of it added
+        where it covers -> [H, W, 3]. The default (no medium) leaves it unchanged."""
+        return colour
+
     def transmittance(self, points: torch.Tensor, view: int) -> torch.Tensor | None:
         """Fraction of the light of world points [N, 3] (scene units) that this medium lets reach the camera of
         view ``view`` -> [N] in (0, 1], or None when the model does not attenuate the scene (the default)."""

@@ -336,16 +336,7 @@ class _Engine:
         visible = (out.depth <= depth).to(out.alpha)
         alpha = out.alpha * visible
         colour = out.rgb * visible[..., None]  # premultiplied (black background)
-        layer = RenderOutput(colour, alpha, out.depth, torch.zeros(0), torch.zeros(0, 2), 0, W, H)
-        empty = RenderOutput(
-            torch.zeros_like(colour), torch.zeros_like(alpha), out.depth, layer.radii, layer.means2d, 0, W, H
-        )
-        for (
-            medium
-        ) in media:  # the air in front of the layer: what the medium makes of it, less its light where it is empty
-            colour = medium.apply(colour, layer, i, self.settings) - medium.apply(
-                torch.zeros_like(colour), empty, i, self.settings
-            ) * (1.0 - alpha[..., None])
-            layer = RenderOutput(colour, alpha, out.depth, layer.radii, layer.means2d, 0, W, H)
+        for medium in media:  # the air between the camera and the layer
+            colour = medium.seen_through(colour, alpha, out.depth, i)
         rgb = rgb * (1.0 - alpha[..., None]) + colour
         return rgb, counts, float(alpha.mean())

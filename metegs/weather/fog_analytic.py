@@ -150,6 +150,18 @@ class FogAnalytic(WeatherModel):
             distance = distance * self.height_factor(self.rise(view, rays), distance, view)
         return fog_composite(color, out.alpha, distance, self.beta_rgb.to(rgb), self.airlight.to(rgb))
 
+    def seen_through(self, colour: torch.Tensor, alpha: torch.Tensor, depth: torch.Tensor, view: int) -> torch.Tensor:
+        """``colour·t + A·α·(1 − t)``, t = exp(−β·d) along each pixel's ray to ``depth`` (see `WeatherModel`)."""
+        H, W = depth.shape
+        rays = self._rays.get(view)
+        if rays is None or rays.shape != (H, W):
+            rays = ray_lengths(self.scene.cameras[view], H, W)
+        distance = depth * rays.to(depth) * self.scene.metres_per_unit
+        if self.layered:
+            distance = distance * self.height_factor(self.rise(view, rays), distance, view)
+        t = torch.exp(-distance[..., None] * self.beta_rgb.detach().to(colour))
+        return colour * t + self.airlight.detach().to(colour) * alpha[..., None] * (1.0 - t)
+
     def rise(self, view: int, rays: torch.Tensor) -> torch.Tensor:
         """[H, W] height gained per metre along each pixel's ray of view ``view``, from its ray lengths per unit of
         camera z ``rays`` [H, W] (`ray_lengths`): the up vector in camera axes dotted with the unit ray."""
