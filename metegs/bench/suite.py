@@ -15,6 +15,10 @@ A run whose ``metrics.json`` and ``bench.json`` exist is not repeated; an interr
 latest checkpoint. Every run evaluates the test views at step 0 and every ``eval_every`` of its
 schedule (``metrics.json`` ``history``: PSNR / SSIM against training seconds), and the final model's
 render speed is timed over the test views (``bench.json``).
+
+The suite is a list of jobs (`Job`: a run, the depth source of a scene from files, a condition's degraded or restored
+photos) that `SuiteRunner.perform` does one at a time, given the values of the jobs it needs; `metegs.bench.executors`
+runs them here one after the other, or as tasks of a Ray cluster.
 """
 
 from __future__ import annotations
@@ -24,7 +28,7 @@ import math
 import platform
 import time
 import traceback
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -42,14 +46,31 @@ from metegs.files import atomic_write_text
 RESULT_KEYS = ("psnr", "ssim", "lpips", "lpips_reason", "num_gaussians", "train_seconds", "steps", "reference")
 
 
-@dataclass
-class Cell:
-    """One (scene, condition) of the suite with its prepared data."""
+@dataclass(frozen=True)
+class Job:
+    """One step of a suite: a training run, or what runs need (the depth source, degraded or restored photos)."""
 
-    scene: SceneSpec
-    condition: ResolvedCondition
-    data: Path
-    weather: dict
+    key: str
+    """Unique name, its folder in the suite (``<scene>/<condition>/<method>``, ``<scene>/<condition>/data`` ...)."""
+    action: str
+    """``clean`` (a run on the clean photos), ``depth``, ``data`` (degraded photos), ``restore`` or ``run``."""
+    scene: str
+    condition: str | None = None
+    method: str | None = None
+    deps: tuple[str, ...] = ()
+    """Keys of the jobs whose values it needs, in order."""
+    resources: dict[str, float] = field(default_factory=dict)
+    """What it asks a cluster for: ``cpus``, ``gpus`` (the suite's ``resources``, or its method's)."""
+
+
+@dataclass
+class JobResult:
+    """What a job gives back: its value for the jobs that need it, and the run records it made."""
+
+    value: Any
+    records: list[dict] = field(default_factory=list)
+    support: list[dict] = field(default_factory=list)
+    thetas: dict[str, dict[str, Any]] = field(default_factory=dict)
 
 
 @torch.no_grad()
@@ -140,6 +161,10 @@ class SuiteRunner:
         self.records: list[dict] = []
         self.support: list[dict] = []
         self.thetas: dict[str, dict[str, Any]] = {}
+        self.resolved: dict[str, ResolvedCondition] = {}
+        """The suite's conditions as runs take them (`resolve_conditions`, set by `run`)."""
+        self.job_threads = 0
+        """Threads of the job being performed (0: the suite's)."""
 
     # --- configs -----------------------------------------------------------------------------------
     def method_config(self, scene: SceneSpec, method: MethodSpec, **fields):
@@ -164,7 +189,7 @@ class SuiteRunner:
             seed=s.seed,
             backend=s.backend,
             device=s.device,
-            threads=s.threads,
+            threads=self.job_threads or s.threads,
             eval_every=s.eval_every,
             progress=self.console.is_terminal,  # a bar per run in a terminal; logs get a line as each run starts
             degrade="off",
@@ -275,17 +300,23 @@ class SuiteRunner:
                     f"was made with; delete {run_dir} to train it again[/]",
                     highlight=False,
                 )
-        verb = "reused" if status == "cached" else f"done in {time.perf_counter() - t0:.0f} s"
-        if record["status"] == "failed":
-            self.console.print(f"[red]{label}: {record['error']}[/]", highlight=False)
-        else:
-            self.console.print(
-                f"{label}: {verb}; PSNR {record['psnr']:.2f} dB, SSIM {record['ssim']:.4f}, "
-                f"{record['num_gaussians']} Gaussians, train {record['train_seconds']:.1f} s",
-                highlight=False,
-            )
         (self.support if support else self.records).append(record)
         return record
+
+    def announce(self, record: dict) -> None:
+        """One line for a run that ended (what the local and the Ray executors print as each run ends)."""
+        label = f"{record['scene']} / {record['condition'] or 'clean'} / {record['method']}"
+        log = f" (log: {record['log']})" if record.get("log") else ""
+        if record["status"] in ("failed", "skipped"):
+            first = str(record.get("error", "")).splitlines()[0] if record.get("error") else ""
+            self.console.print(f"[red]{label}: {record['status']}[/]: {first}{log}", highlight=False)
+            return
+        verb = "reused" if record["status"] == "cached" else f"done in {record.get('wall_seconds') or 0:.0f} s"
+        self.console.print(
+            f"{label}: {verb}; PSNR {record['psnr']:.2f} dB, SSIM {record['ssim']:.4f}, "
+            f"{record['num_gaussians']} Gaussians, train {record['train_seconds']:.1f} s",
+            highlight=False,
+        )
 
     def _write_bench(self, path, scene, method, condition, extra, fps, views, config, started: float) -> None:
         record = {
@@ -351,10 +382,6 @@ class SuiteRunner:
         }
 
     def _failed(self, scene, method, condition, run_dir, error: str, support: bool = False, status="failed") -> dict:
-        self.console.print(
-            f"[red]{scene.name} / {condition or 'clean'} / {method.name}: {status}[/]: {error.splitlines()[0]}",
-            highlight=False,
-        )
         record = {
             **self._identity(scene, method, condition, run_dir, status),
             "error": error,
@@ -387,7 +414,10 @@ class SuiteRunner:
         """The suite's (selected) condition specs that run on ``scene``."""
         return [c for c in self.condition_specs if scene.conditions is None or c.name in scene.conditions]
 
-    def run(self) -> dict:
+    def run(self, executor=None) -> dict:
+        """Run the suite's jobs (`plan_jobs`) on ``executor`` (default: `LocalExecutor`, one after the other in this
+        process) and gather the results; every executor resumes from the same suite folder."""
+        from metegs.bench.executors import LocalExecutor
         from metegs.bench.report import write_report
 
         started = time.perf_counter()
@@ -395,55 +425,191 @@ class SuiteRunner:
         if self.suite.threads > 0:
             torch.set_num_threads(self.suite.threads)
         conditions = self.resolve_conditions()
+        self.resolved = conditions
         self.write_conditions(conditions)
-        for scene in self.scenes:
-            self.run_scene(scene, conditions)
-            self.write_conditions(conditions)
+        jobs = self.plan_jobs()
+        outputs = (executor or LocalExecutor()).run(self, jobs)
+        self.records, self.support, self.thetas = [], [], {}
+        for job in jobs:  # in plan order, whichever order the jobs ended in
+            out = outputs[job.key]
+            self.records += out.records
+            self.support += out.support
+            for name, by_scene in out.thetas.items():
+                self.thetas.setdefault(name, {}).update(by_scene)
+        self.write_conditions(conditions)
         results = self.results(conditions, time.perf_counter() - started)
         atomic_write_text(self.output / "results.json", json.dumps(results, indent=1, default=str))
         write_report(results, self.output)
         return results
 
-    def run_scene(self, scene: SceneSpec, conditions: dict[str, ResolvedCondition]) -> None:
-        methods = [m for m in self.methods if m.runs_on(scene.name, None)]
-        clean_methods = [m for m in methods if m.photos == "clean"]
-        weather_methods = [m for m in methods if m.photos != "clean"]
-        depth_run = None
-        for m in clean_methods:
-            run_dir = self.output / scene.name / "clean" / m.name
-            rec = self.execute(scene, m, None, run_dir, self.method_config(scene, m, experiment_name=f"clean-{m.name}"))
-            if rec["status"] != "failed" and depth_run is None:
-                depth_run = run_dir
-        needs_depth = not scene.in_memory and any(
-            m.runs_on(scene.name, c.name) for m in weather_methods for c in self.conditions_of(scene)
-        )
-        if needs_depth and depth_run is None:
-            helper = MethodSpec(name="_depth-3dgs", method="3dgs", photos="clean")
-            run_dir = self.output / scene.name / "clean" / helper.name
-            rec = self.execute(
-                scene, helper, None, run_dir, self.method_config(scene, helper, experiment_name="depth"), support=True
+    # --- jobs --------------------------------------------------------------------------------------
+    def plan_jobs(self) -> list[Job]:
+        """Every job of the suite in an order that runs each after the jobs it needs: per scene its clean-photo
+        runs, the depth source (a scene from files), then per condition the degraded data, the restored photos
+        and the runs on them."""
+        jobs: list[Job] = []
+        default = self.suite.resources
+        for scene in self.scenes:
+            methods = [m for m in self.methods if m.runs_on(scene.name, None)]
+            clean = []
+            for m in (m for m in methods if m.photos == "clean"):
+                key = f"{scene.name}/clean/{m.name}"
+                jobs.append(Job(key, "clean", scene.name, method=m.name, resources=m.resources or default))
+                clean.append(key)
+            weather_methods = [m for m in methods if m.photos != "clean"]
+            needs_depth = not scene.in_memory and any(
+                m.runs_on(scene.name, c.name) for m in weather_methods for c in self.conditions_of(scene)
             )
-            depth_run = run_dir if rec["status"] != "failed" else None
-        dataset = self.dataset_config(scene)
-        for spec in self.conditions_of(scene):
-            here = [m for m in weather_methods if m.runs_on(scene.name, spec.name)]
-            if not here:
-                continue
-            condition = conditions[spec.name]
-            cell_dir = self.output / scene.name / spec.name
-            try:
-                if needs_depth and depth_run is None:
-                    raise MetegsError(f"no clean run of {scene.name} to take the depth from (it failed)")
-                data, weather = self._degraded(scene, condition, cell_dir, dataset, depth_run)
-            except Exception as exc:  # noqa: BLE001
-                if self.fail_fast:
-                    raise
+            depth = ()
+            if needs_depth:
+                jobs.append(Job(f"{scene.name}/depth", "depth", scene.name, deps=tuple(clean), resources=default))
+                depth = (f"{scene.name}/depth",)
+            for spec in self.conditions_of(scene):
+                here = [m for m in weather_methods if m.runs_on(scene.name, spec.name)]
+                if not here:
+                    continue
+                data = f"{scene.name}/{spec.name}/data"
+                jobs.append(Job(data, "data", scene.name, spec.name, deps=depth, resources=default))
+                restores: dict[str, str] = {}
+                for m in (m for m in here if m.photos == "restored"):
+                    folder = self.restored_folder(spec.kind, m)
+                    if folder not in restores:
+                        restores[folder] = f"{scene.name}/{spec.name}/{folder}"
+                        jobs.append(Job(restores[folder], "restore", scene.name, spec.name, m.name, (data,), default))
                 for m in here:
-                    self._failed(scene, m, spec.name, cell_dir / m.name, f"data: {type(exc).__name__}: {exc}")
-                continue
-            cell = Cell(scene, condition, data, weather)
-            for m in here:
-                self.run_cell_method(cell, m, dataset)
+                    deps = (data,) + ((restores[self.restored_folder(spec.kind, m)],) if m.photos == "restored" else ())
+                    key = f"{scene.name}/{spec.name}/{m.name}"
+                    jobs.append(Job(key, "run", scene.name, spec.name, m.name, deps, m.resources or default))
+        return jobs
+
+    def perform(self, job: Job, inputs: dict[str, Any], threads: int = 0) -> JobResult:
+        """Do one job with the values of the jobs it needs (``inputs``, by key); what it recorded comes back with
+        its value. ``threads``: torch and kernel threads of its training (0: the suite's)."""
+        self.records, self.support, self.thetas = [], [], {}
+        self.job_threads = threads
+        if threads > 0:
+            torch.set_num_threads(threads)
+        scene = next(s for s in self.suite.scenes if s.name == job.scene)
+        method = self.suite.method(job.method) if job.method else None
+        value = getattr(self, f"_job_{job.action}")(job, scene, method, inputs)
+        return JobResult(value, self.records, self.support, self.thetas)
+
+    def job_failed(self, job: Job, error: str, log: str | None = None) -> JobResult:
+        """What a job that could not run at all (its worker died, a job it needs failed) records."""
+        self.records, self.support, self.thetas = [], [], {}
+        if job.action in ("clean", "run"):
+            scene = next(s for s in self.suite.scenes if s.name == job.scene)
+            run_dir = self.output / job.scene / (job.condition or "clean") / job.method
+            self._failed(scene, self.suite.method(job.method), job.condition, run_dir, error)
+            if log:
+                self.records[-1]["log"] = log
+        value = {"error": error} if job.action in ("data", "restore") else None
+        return JobResult(value, self.records, self.support, self.thetas)
+
+    def _job_clean(self, job, scene, method, inputs):
+        run_dir = self.output / scene.name / "clean" / method.name
+        rec = self.execute(
+            scene, method, None, run_dir, self.method_config(scene, method, experiment_name=f"clean-{method.name}")
+        )
+        return str(run_dir) if rec["status"] != "failed" else None
+
+    def _job_depth(self, job, scene, method, inputs):
+        """The run the degraded data takes its depth from: the first clean-photo run that worked, else a 3dgs
+        run on the clean photos made for it (a support run)."""
+        for key in job.deps:
+            if inputs.get(key):
+                return inputs[key]
+        helper = MethodSpec(name="_depth-3dgs", method="3dgs", photos="clean")
+        run_dir = self.output / scene.name / "clean" / helper.name
+        rec = self.execute(
+            scene, helper, None, run_dir, self.method_config(scene, helper, experiment_name="depth"), support=True
+        )
+        return str(run_dir) if rec["status"] != "failed" else None
+
+    def _job_data(self, job, scene, method, inputs):
+        condition = self.resolved[job.condition]
+        depth_run = inputs[job.deps[0]] if job.deps else None
+        try:
+            if job.deps and depth_run is None:
+                raise MetegsError(f"no clean run of {scene.name} to take the depth from (it failed)")
+            cell_dir = self.output / scene.name / job.condition
+            data, weather = self._degraded(
+                scene, condition, cell_dir, self.dataset_config(scene), None if depth_run is None else Path(depth_run)
+            )
+        except Exception as exc:  # noqa: BLE001 - every run of the cell records it
+            if self.fail_fast:
+                raise
+            return {"error": f"{type(exc).__name__}: {exc}"}
+        return {"data": str(data), "weather": weather}
+
+    def restored_folder(self, kind: str, method: MethodSpec) -> str:
+        """The folder of a condition's photos restored for ``method`` (shared by methods with the same restorers)."""
+        names = {**{"rain": "kang2012", "fog": "dcp"}, **method.restorer}
+        return "restored-" + "+".join(names[k] for k in ("rain", "fog") if k in kind.split("+"))
+
+    def _job_restore(self, job, scene, method, inputs):
+        from metegs.bench.data import restored_dataset
+        from metegs.restore import restorer_for_kinds
+
+        data = inputs[job.deps[0]]
+        if "error" in data:
+            return {"error": data["error"], "data_failed": True}
+        condition = self.resolved[job.condition]
+        target = self.output / scene.name / job.condition / self.restored_folder(condition.kind, method)
+        if (target / "restore.json").is_file():
+            return {"data": str(target), "info": json.loads((target / "restore.json").read_text())}
+        names = {**{"rain": "kang2012", "fog": "dcp"}, **method.restorer}
+        try:
+            restorer = restorer_for_kinds(condition.kind, names, method.restorer_options)
+            self.console.print(f"{scene.name} / {condition.name}: restoring the photos with {restorer.name}")
+            folder, info = restored_dataset(target, Path(data["data"]), self.dataset_config(scene), restorer)
+        except MetegsError as exc:
+            return {"error": str(exc), "metegs": True}
+        return {"data": str(folder), "info": info}
+
+    def _job_run(self, job, scene, method, inputs):
+        from metegs.bench.data import run_conditions
+
+        condition = self.resolved[job.condition]
+        run_dir = self.output / scene.name / condition.name / method.name
+        data = inputs[job.deps[0]]
+        if "error" in data:
+            return self._failed(scene, method, condition.name, run_dir, f"data: {data['error']}")
+        weather = data["weather"]
+        conds = run_conditions(condition, weather, scene.synth)
+        common = dict(
+            data=Path(data["data"]), parser=None, conditions=conds, experiment_name=f"{condition.name}-{method.name}"
+        )
+        extra: dict[str, Any] = {"data": data["data"]}
+        config = self.method_config(scene, method, **common)
+        if method.photos == "restored":
+            restored = inputs[job.deps[1]]
+            if "error" in restored:
+                if method.optional and restored.get("metegs"):
+                    return self._failed(scene, method, condition.name, run_dir, restored["error"], status="skipped")
+                if self.fail_fast:
+                    raise MetegsError(f"restorer: {restored['error']}")
+                return self._failed(scene, method, condition.name, run_dir, f"restorer: {restored['error']}")
+            info = restored["info"]
+            config = replace(config, data=Path(restored["data"]), dataset=replace(config.dataset, downscale=1))
+            extra = {
+                "data": restored["data"],
+                "restorer": info["restorer"],
+                "preprocess_seconds": info["restore_seconds"],
+                "restored_from": data["data"],
+            }
+        return self.execute(scene, method, condition.name, run_dir, config, extra)
+
+    def __getstate__(self) -> dict:
+        """Pickled for the Ray executor's workers: without the console (a worker writes to its job's log)."""
+        state = dict(self.__dict__)
+        state["console"] = None
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        if self.console is None:
+            self.console = Console(stderr=True)
 
     def _degraded(self, scene, condition, cell_dir: Path, dataset, depth_run):
         from metegs.bench.data import degraded_dataset
@@ -475,49 +641,6 @@ class SuiteRunner:
         }
         atomic_write_text(cell_dir / "condition.json", json.dumps(record, indent=1, default=str))
         return data, weather
-
-    def run_cell_method(self, cell: Cell, method: MethodSpec, dataset) -> dict:
-        from metegs.bench.data import run_conditions
-
-        scene, condition = cell.scene, cell.condition
-        run_dir = self.output / scene.name / condition.name / method.name
-        conds = run_conditions(condition, cell.weather, scene.synth)
-        common = dict(data=cell.data, parser=None, conditions=conds, experiment_name=f"{condition.name}-{method.name}")
-        extra: dict[str, Any] = {"data": str(cell.data)}
-        if method.photos == "restored":
-            try:
-                data, info = self._restored(cell, method, dataset)
-            except MetegsError as exc:
-                if method.optional:
-                    return self._failed(scene, method, condition.name, run_dir, str(exc), status="skipped")
-                if self.fail_fast:
-                    raise
-                return self._failed(scene, method, condition.name, run_dir, f"restorer: {exc}")
-            config = self.method_config(scene, method, **common)
-            config = replace(config, data=data, dataset=replace(config.dataset, downscale=1))
-            extra = {
-                "data": str(data),
-                "restorer": info["restorer"],
-                "preprocess_seconds": info["restore_seconds"],
-                "restored_from": str(cell.data),
-            }
-        else:
-            config = self.method_config(scene, method, **common)
-        return self.execute(scene, method, condition.name, run_dir, config, extra)
-
-    def _restored(self, cell: Cell, method: MethodSpec, dataset):
-        from metegs.bench.data import restored_dataset
-        from metegs.restore import restorer_for_kinds
-
-        names = {**{"rain": "kang2012", "fog": "dcp"}, **method.restorer}
-        kinds = [k for k in ("rain", "fog") if k in cell.condition.kind.split("+")]
-        folder = "restored-" + "+".join(names[k] for k in kinds)
-        target = self.output / cell.scene.name / cell.condition.name / folder
-        if (target / "restore.json").is_file():
-            return target, json.loads((target / "restore.json").read_text())
-        restorer = restorer_for_kinds(cell.condition.kind, names, method.restorer_options)
-        self.console.print(f"{cell.scene.name} / {cell.condition.name}: restoring the photos with {restorer.name}")
-        return restored_dataset(target, cell.data, dataset, restorer)
 
     # --- results -----------------------------------------------------------------------------------
     def results(self, conditions: dict[str, ResolvedCondition], seconds: float) -> dict:

@@ -97,8 +97,11 @@ class MethodSpec:
     ablation_label: str | None = None
     """Also list this (main) method in the ablation table under this label (e.g. ``(e) full`` for
     ``metegs-full``, which is the last ablation row: no separate run)."""
+    resources: dict[str, float] | None = None
+    """What each of its runs asks a Ray cluster for (``{cpus: 4, gpus: 1}``; None: the suite's ``resources``)."""
 
     def __post_init__(self) -> None:
+        check_resources(self.resources, f"method {self.name!r}")
         if self.photos not in PHOTOS:
             raise ConfigError(f"method {self.name!r}: photos must be one of {', '.join(PHOTOS)}, got {self.photos!r}")
         if self.group not in ("main", "ablation"):
@@ -110,6 +113,20 @@ class MethodSpec:
         return (self.scenes is None or scene in self.scenes) and (
             condition is None or self.conditions is None or condition in self.conditions
         )
+
+
+def check_resources(resources: dict[str, float] | None, where: str) -> None:
+    """ConfigError unless ``resources`` is None or maps ``cpus`` / ``gpus`` to non-negative numbers."""
+    if resources is None:
+        return
+    if not isinstance(resources, dict):
+        raise ConfigError(f"{where}: resources must be a mapping such as {{cpus: 2, gpus: 1}}, got {resources!r}")
+    unknown = sorted(set(resources) - {"cpus", "gpus"})
+    if unknown:
+        raise ConfigError(f"{where}: unknown resource(s) {unknown}; give cpus and/or gpus")
+    for key, value in resources.items():
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not value >= 0:
+            raise ConfigError(f"{where}: resources.{key} must be a non-negative number, got {value!r}")
 
 
 _EXPECT = re.compile(r"\s*(>=|>)\s*")
@@ -162,10 +179,15 @@ class SuiteConfig:
     train: dict[str, Any] = field(default_factory=dict)
     checks: list[CheckSpec] = field(default_factory=list)
     description: str = ""
+    resources: dict[str, float] = field(default_factory=lambda: {"cpus": 1, "gpus": 0})
+    """What each job (a run, the synthesis or restoration of a condition's photos) asks a Ray cluster for
+    (``metegs-bench suite --executor ray``): ``cpus`` and ``gpus``; a method's ``resources`` replace it for its runs."""
     source: Path | None = None
     """The file it was read from."""
 
     def __post_init__(self) -> None:
+        check_resources(self.resources, self.where)
+        self.resources = {"cpus": 1, "gpus": 0, **self.resources}
         for what, items in (("scene", self.scenes), ("condition", self.conditions), ("method", self.methods)):
             names = [i.name for i in items]
             dup = sorted({n for n in names if names.count(n) > 1})

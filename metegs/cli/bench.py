@@ -135,6 +135,11 @@ class SuiteArgs:
     """Run only these methods."""
     fail_fast: bool = False
     """Stop at the first failed run (default: record the failure and go on)."""
+    executor: Literal["local", "ray"] = "local"
+    """Where the runs go: one after the other here (local), or as tasks of a Ray cluster (ray: pip install -e
+    ".[ray]"; each run asks for the suite's or its method's `resources`). Either finishes what the other began."""
+    address: str | None = None
+    """With --executor ray: the cluster (auto, or ray://HOST:10001); none: start Ray on this machine."""
     dry_run: bool = False
     """Print the plan (runs and their folders) and exit."""
     report_only: bool = False
@@ -148,6 +153,7 @@ QUICK_SUITE = Path(__file__).resolve().parents[2] / "configs" / "bench" / "quick
 
 
 def suite(args: SuiteArgs) -> dict:
+    from metegs.bench.executors import make_executor
     from metegs.bench.report import write_report
     from metegs.bench.suite import SuiteRunner
     from metegs.bench.suite_config import load_suite
@@ -189,7 +195,7 @@ def suite(args: SuiteArgs) -> dict:
         f"[bold]metegs-bench[/] suite {config.name} ({path}): {len(runner.scenes)} scene(s) x "
         f"{len(runner.condition_specs)} condition(s) x {len(runner.methods)} method(s) -> {runner.output}"
     )
-    results = runner.run()
+    results = runner.run(make_executor(args.executor, args.address))
     console.print((runner.output / "results.md").read_text())
     console.print(
         f"[bold]done[/] in {results['total_seconds']:.0f} s: {runner.output / 'results.json'}, "
