@@ -25,7 +25,8 @@ def weather_kinds() -> dict[str, list[str]]:
 def precipitation_kinds() -> frozenset[str]:
     """Kinds that fall anew in every photo (rain, snow: a model of theirs is `transient`): θ's precipitation rate
     sets them."""
-    return frozenset(e.load()().kind for e in registry("weather").entries() if e.load()().model_class().transient)
+    configs = [e.load()() for e in registry("weather").entries()]
+    return frozenset(c.kind for c in configs if c.model_class().transient)
 
 
 def kind_of(name: str) -> str:

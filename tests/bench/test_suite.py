@@ -65,11 +65,41 @@ def _minimal(**extra):
             {"conditions": [{"name": "f", "kind": "fog", "fog": {"visibility_m": 9, "explicit": True}, "family": "x"}]},
             "family must be one of physical, independent",
         ),
+        ({"resources": {"cpus": 2, "tpus": 1}}, "unknown resource"),
+        ({"resources": {"gpus": -1}}, "resources.gpus must be a non-negative number"),
+        ({"methods": [{"name": "a", "resources": {"cpus": "many"}}]}, "method 'a': resources.cpus"),
+        ({"conditions": [{"name": "h", "kind": "hail", "rain": {"precip_mm_h": 5}}]}, "unknown: hail"),
+        ({"conditions": [{"name": "d", "kind": "drops"}]}, "with '\\+drops' for the lens"),
+        (
+            {"conditions": [{"name": "r", "kind": "rain+fog", "fog": {"visibility_m": 300, "explicit": True}}]},
+            "'rain:'",
+        ),
     ],
 )
 def test_suite_file_errors_are_clear(change, message):
     with pytest.raises(ConfigError, match=message):
         suite_from_dict(_minimal(**change))
+
+
+def test_resources_default_to_one_cpu_and_the_executor_names_are_checked():
+    from metegs.bench.executors import LocalExecutor, RayExecutor, make_executor
+
+    suite = suite_from_dict(_minimal(resources={"gpus": 1}, methods=[{"name": "a", "resources": {"cpus": 4}}]))
+    assert suite.resources == {"cpus": 1, "gpus": 1} and suite.methods[0].resources == {"cpus": 4}
+    assert isinstance(make_executor("local"), LocalExecutor)
+    assert isinstance(make_executor("ray", "auto"), RayExecutor)  # Ray itself is imported only when it runs
+    with pytest.raises(ConfigError, match="--address goes with --executor ray"):
+        make_executor("local", "auto")
+    with pytest.raises(ConfigError, match="expected one of local, ray"):
+        make_executor("dask")
+
+
+def test_the_ray_executor_says_how_to_install_ray(monkeypatch):
+    from metegs.bench.executors import RayExecutor
+
+    monkeypatch.setitem(sys.modules, "ray", None)  # as where the extra is not installed
+    with pytest.raises(ConfigError, match=r'--executor ray needs Ray: pip install -e "\.\[ray\]"'):
+        RayExecutor().run(None, [])
 
 
 def _run(scene, cond, method, psnr, ssim, status="done", oracle=False, history=None):
