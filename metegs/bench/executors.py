@@ -107,7 +107,7 @@ class RayExecutor:
             refs[job.key] = ref
             by_ref[ref] = job
         outputs: dict[str, JobResult] = {}
-        runs = sum(1 for j in jobs if j.action in ("clean", "run"))
+        runs = sum(1 for j in jobs if j.action in ("clean", "run", "peer"))
         columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
         with Progress(*columns, console=runner.console, transient=True) as progress:
             bar = progress.add_task(f"runs on Ray ({len(jobs)} jobs)", total=runs)
@@ -128,7 +128,7 @@ class RayExecutor:
                 for record in out.records + out.support:
                     runner.announce(record)
                 outputs[job.key] = out
-                if job.action in ("clean", "run"):
+                if job.action in ("clean", "run", "peer"):
                     progress.advance(bar)
         return outputs
 

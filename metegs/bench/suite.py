@@ -53,7 +53,8 @@ class Job:
     key: str
     """Unique name, its folder in the suite (``<scene>/<condition>/<method>``, ``<scene>/<condition>/data`` ...)."""
     action: str
-    """``clean`` (a run on the clean photos), ``depth``, ``data`` (degraded photos), ``restore`` or ``run``."""
+    """``clean`` (a run on the clean photos), ``depth``, ``data`` (degraded photos), ``restore``, ``run`` or ``peer``
+    (another toolkit's PLY scored like a run)."""
     scene: str
     condition: str | None = None
     method: str | None = None
@@ -312,9 +313,10 @@ class SuiteRunner:
             self.console.print(f"[red]{label}: {record['status']}[/]: {first}{log}", highlight=False)
             return
         verb = "reused" if record["status"] == "cached" else f"done in {record.get('wall_seconds') or 0:.0f} s"
+        train = record.get("train_seconds")
         self.console.print(
-            f"{label}: {verb}; PSNR {record['psnr']:.2f} dB, SSIM {record['ssim']:.4f}, "
-            f"{record['num_gaussians']} Gaussians, train {record['train_seconds']:.1f} s",
+            f"{label}: {verb}; PSNR {record['psnr']:.2f} dB, SSIM {record['ssim']:.4f}, {record['num_gaussians']} "
+            f"Gaussians, " + (f"train {train:.1f} s" if train is not None else "scored (trained elsewhere)"),
             highlight=False,
         )
 
@@ -399,8 +401,16 @@ class SuiteRunner:
                 return "finished"
             return "resumes" if latest_checkpoint(run_dir) is not None else "to run"
 
+        keys = {j.key: j for j in self.plan_jobs()}
+        for key, job in keys.items():
+            if job.action == "peer":
+                d = self.output / key
+                done = "scored" if (d / "eval.json").is_file() else "to score"
+                lines.append(
+                    f"{key.replace('/', ' / ')}: {d} ({done} from {self.suite.method(job.method).peer['ply']})"
+                )
         for scene in self.scenes:
-            methods = [m for m in self.methods if m.runs_on(scene.name, None)]
+            methods = [m for m in self.methods if m.runs_on(scene.name, None) and m.peer is None]
             for m in (m for m in methods if m.photos == "clean"):
                 d = self.output / scene.name / "clean" / m.name
                 lines.append(f"{scene.name} / clean / {m.name}: {d} ({state(d)})")
@@ -450,12 +460,13 @@ class SuiteRunner:
         jobs: list[Job] = []
         default = self.suite.resources
         for scene in self.scenes:
-            methods = [m for m in self.methods if m.runs_on(scene.name, None)]
+            methods = [m for m in self.methods if m.runs_on(scene.name, None) and m.peer is None]
             clean = []
             for m in (m for m in methods if m.photos == "clean"):
                 key = f"{scene.name}/clean/{m.name}"
                 jobs.append(Job(key, "clean", scene.name, method=m.name, resources=m.resources or default))
                 clean.append(key)
+            jobs += self._peer_jobs(scene, None, [m for m in methods if m.photos == "clean"])
             weather_methods = [m for m in methods if m.photos != "clean"]
             needs_depth = not scene.in_memory and any(
                 m.runs_on(scene.name, c.name) for m in weather_methods for c in self.conditions_of(scene)
@@ -480,7 +491,18 @@ class SuiteRunner:
                     deps = (data,) + ((restores[self.restored_folder(spec.kind, m)],) if m.photos == "restored" else ())
                     key = f"{scene.name}/{spec.name}/{m.name}"
                     jobs.append(Job(key, "run", scene.name, spec.name, m.name, deps, m.resources or default))
+                jobs += self._peer_jobs(scene, spec.name, here)
         return jobs
+
+    def _peer_jobs(self, scene: SceneSpec, condition: str | None, trained: list[MethodSpec]) -> list[Job]:
+        """The peer rows of a cell (``peer:`` methods scored like one of ``trained``), after the runs they need."""
+        names = {m.name for m in trained}
+        cell = f"{scene.name}/{condition or 'clean'}"
+        return [
+            Job(f"{cell}/{m.name}", "peer", scene.name, condition, m.name, (f"{cell}/{m.peer['like']}",))
+            for m in self.methods
+            if m.peer is not None and m.peer["like"] in names and m.runs_on(scene.name, condition)
+        ]
 
     def perform(self, job: Job, inputs: dict[str, Any], threads: int = 0) -> JobResult:
         """Do one job with the values of the jobs it needs (``inputs``, by key); what it recorded comes back with
@@ -497,7 +519,7 @@ class SuiteRunner:
     def job_failed(self, job: Job, error: str, log: str | None = None) -> JobResult:
         """What a job that could not run at all (its worker died, a job it needs failed) records."""
         self.records, self.support, self.thetas = [], [], {}
-        if job.action in ("clean", "run"):
+        if job.action in ("clean", "run", "peer"):
             scene = next(s for s in self.suite.scenes if s.name == job.scene)
             run_dir = self.output / job.scene / (job.condition or "clean") / job.method
             self._failed(scene, self.suite.method(job.method), job.condition, run_dir, error)
@@ -599,6 +621,42 @@ class SuiteRunner:
                 "restored_from": data["data"],
             }
         return self.execute(scene, method, condition.name, run_dir, config, extra)
+
+    def _job_peer(self, job, scene, method, inputs):
+        """Score a peer's PLY on the views of the run it is ``like`` (cached in its folder's eval.json while the file
+        is unchanged)."""
+        from metegs.engine.run import evaluate_run, load_run
+
+        cell = self.output / scene.name / (job.condition or "clean")
+        run_dir, like = cell / method.name, cell / method.peer["like"]
+        ply = Path(method.peer["ply"].format(scene=scene.name, condition=job.condition or "clean"))
+        if not (like / "metrics.json").is_file():
+            return self._failed(
+                scene, method, job.condition, run_dir, f"the run it is scored like ({like}) did not end"
+            )
+        if not ply.is_file():
+            return self._failed(scene, method, job.condition, run_dir, f"{ply}: the peer's PLY file is not there")
+        stamp = {"ply": str(ply.resolve()), "size": ply.stat().st_size, "mtime": ply.stat().st_mtime}
+        path = run_dir / "eval.json"
+        cached = json.loads(path.read_text()) if path.is_file() else None
+        status = "cached" if cached is not None and cached.get("peer") == stamp else "done"
+        if status == "done":
+            self.console.print(f"{scene.name} / {job.condition or 'clean'} / {method.name}: scoring {ply}")
+            try:
+                metrics = evaluate_run(load_run(like, ply=ply))
+            except MetegsError as exc:
+                return self._failed(scene, method, job.condition, run_dir, f"{type(exc).__name__}: {exc}")
+            cached = {**metrics, "peer": stamp, "like": str(like)}
+            run_dir.mkdir(parents=True, exist_ok=True)
+            atomic_write_text(path, json.dumps(cached, indent=2, default=str))
+        record = {
+            **self._identity(scene, method, job.condition, run_dir, status),
+            **{k: _finite(cached.get(k)) for k in RESULT_KEYS},
+            "peer_ply": stamp["ply"],
+            "history": [],
+        }
+        self.records.append(record)
+        return record
 
     def __getstate__(self) -> dict:
         """Pickled for the Ray executor's workers: without the console (a worker writes to its job's log)."""

@@ -99,9 +99,16 @@ class MethodSpec:
     ``metegs-full``, which is the last ablation row: no separate run)."""
     resources: dict[str, float] | None = None
     """What each of its runs asks a Ray cluster for (``{cpus: 4, gpus: 1}``; None: the suite's ``resources``)."""
+    peer: dict[str, str] | None = None
+    """A row of another toolkit's result, trained elsewhere: ``{ply: FILE, like: METHOD}`` scores the Gaussians of FILE
+    (``{scene}`` and ``{condition}`` in it are filled in; ``clean`` for clean photos) on the views and with the evaluator
+    of METHOD's run in the same cell, as ``metegs-eval RUN --ply FILE`` does. Nothing is trained for it."""
 
     def __post_init__(self) -> None:
         check_resources(self.resources, f"method {self.name!r}")
+        if self.peer is not None:
+            if not isinstance(self.peer, dict) or set(self.peer) != {"ply", "like"}:
+                raise ConfigError(f"method {self.name!r}: peer must be {{ply: FILE, like: METHOD}}, got {self.peer!r}")
         if self.photos not in PHOTOS:
             raise ConfigError(f"method {self.name!r}: photos must be one of {', '.join(PHOTOS)}, got {self.photos!r}")
         if self.group not in ("main", "ablation"):
@@ -208,6 +215,14 @@ class SuiteConfig:
             if missing:
                 raise ConfigError(f"{self.where}: scene {scene.name!r} names unknown condition(s) {missing}")
         method_names = {m.name for m in self.methods}
+        for m in self.methods:
+            if m.peer is not None:
+                like = next((o for o in self.methods if o.name == m.peer["like"]), None)
+                if like is None or like.peer is not None:
+                    raise ConfigError(
+                        f"{self.where}: method {m.name!r}: peer.like must name a method the suite trains, "
+                        f"got {m.peer['like']!r}"
+                    )
         for check in self.checks:
             missing = sorted({n for a, _, b in check.chain() for n in (a, b)} - method_names)
             if missing:
@@ -268,7 +283,11 @@ def suite_from_dict(data: dict[str, Any], source: Path | None = None) -> SuiteCo
                 if isinstance(src, dict) and "record" in src:
                     c[key] = {**src, "record": _record_path(src["record"], base)}
         conditions.append(_build(ConditionSpec, c, f"{where}: conditions[{i}]"))
-    methods = [_build(MethodSpec, m, f"{where}: methods[{i}]") for i, m in enumerate(data.pop("methods", None) or [])]
+    methods = []
+    for i, m in enumerate(data.pop("methods", None) or []):
+        if isinstance(m, dict) and isinstance(m.get("peer"), dict) and "ply" in m["peer"]:
+            m = {**m, "peer": {**m["peer"], "ply": str(_expand(m["peer"]["ply"], base))}}
+        methods.append(_build(MethodSpec, m, f"{where}: methods[{i}]"))
     checks = [_build(CheckSpec, c, f"{where}: checks[{i}]") for i, c in enumerate(data.pop("checks", None) or [])]
     if "output" in data and data["output"] is not None:
         data["output"] = Path(os.path.expandvars(os.path.expanduser(str(data["output"]))))

@@ -12,7 +12,6 @@ from rich.console import Console
 
 from metegs.cli import run_cli
 from metegs.engine.run import run_folder
-from metegs.errors import MetegsError
 from metegs.files import write_result
 
 
@@ -40,25 +39,11 @@ class EvalArgs:
 
 
 def main(args: EvalArgs) -> dict:
-    from metegs.engine.run import load_run
-    from metegs.eval.lpips import try_load_lpips
-    from metegs.eval.metrics import evaluate_images
+    from metegs.engine.run import evaluate_run, load_run
 
     trainer = load_run(args.run_dir, args.checkpoint, args.ply, args.device)
-    ds = trainer.dataset
-    idx = ds.test_indices if args.split == "test" else ds.train_indices
-    if not idx:
-        raise MetegsError(f"{args.run_dir}: the scene has no {args.split} views")
-    model, reason = try_load_lpips(args.lpips_net, device=trainer.device)
-    bg = trainer.background(training=False)
-    references = [trainer.reference(i, bg) for i in idx]  # clean references when the scene has them
-    m = evaluate_images(trainer.render_views(idx), references, lpips_model=model, lpips_reason=reason)
-    m.update(
-        split=args.split,
-        reference="clean" if ds.clean_images is not None else "photo",
-        num_gaussians=len(trainer.model),
-        source=str(args.ply or args.checkpoint or "latest checkpoint"),
-    )
+    m = evaluate_run(trainer, args.split, args.lpips_net)
+    m["source"] = str(args.ply or args.checkpoint or "latest checkpoint")
     write_result(args.output or Path(args.run_dir) / "eval.json", json.dumps(m, indent=2))
     lp = m["lpips"]
     Console(stderr=True).print(

@@ -79,6 +79,26 @@ def load_run(run_dir: Path, checkpoint: Path | None = None, ply: Path | None = N
     return trainer
 
 
+def evaluate_run(trainer, split: str = "test", lpips_net: str = "alex") -> dict:
+    """PSNR / SSIM / LPIPS of ``trainer``'s Gaussians on its ``split`` views against their clean references where
+    the scene has them, as `metegs-eval` reports them (LPIPS null with the reason when its weights are missing)."""
+    from metegs.eval.lpips import try_load_lpips
+    from metegs.eval.metrics import evaluate_images
+
+    ds = trainer.dataset
+    idx = ds.test_indices if split == "test" else ds.train_indices
+    if not idx:
+        raise DataError(trainer.run_dir, f"the scene has no {split} views")
+    model, reason = try_load_lpips(lpips_net, device=trainer.device)
+    bg = trainer.background(training=False)
+    references = [trainer.reference(i, bg) for i in idx]  # clean references when the scene has them
+    metrics = evaluate_images(trainer.render_views(idx), references, lpips_model=model, lpips_reason=reason)
+    metrics.update(
+        split=split, reference="clean" if ds.clean_images is not None else "photo", num_gaussians=len(trainer.model)
+    )
+    return metrics
+
+
 def median_gap(means, points) -> float:
     """Median distance from the points ``means`` [N, 3] to their nearest of ``points`` [P, 3] (at most 2048 of
     each, evenly spread): how well a set of Gaussians lies on a scene's own points."""

@@ -354,3 +354,51 @@ def test_both_weather_families_in_one_suite(tmp_path):
     assert "theta" not in made["rf-ind"]["views"][0] and made["rf-ind"]["views"][0]["rain"]["layers"]
     assert results["conditions"]["rf-ind"]["family"] == "independent"
     assert "| rf-ind | rain+fog | independent |" in (out / "results.md").read_text()
+
+
+def test_a_peer_row_scores_another_toolkits_ply_like_a_run(tmp_path, capsys):
+    """A peer's PLY (here the 3dgs run's Gaussians written again in the scene's frame without metegs's frame comment,
+    as another toolkit writes them) scores what the run scores, on the same views by the same evaluator."""
+    from metegs.bench.suite import SuiteRunner
+    from metegs.gaussians.ply import load_ply, save_ply
+
+    train = {"max_steps": 6, "checkpoint_every": 0, "save_renders": False, "densify": {"max_gaussians": 600}}
+    train["dataset"] = {"test_every": 4, "synthetic": {"width": 32, "height": 24, "num_views": 8, "num_points": 300}}
+    peer_ply = str(tmp_path / "peer" / "{scene}-{condition}.ply")
+    suite = suite_from_dict(
+        _minimal(
+            fps_repeats=1,
+            train=train,
+            methods=[
+                {"name": "3dgs"},
+                {"name": "3dgs-clean", "photos": "clean"},
+                {"name": "peer", "peer": {"ply": peer_ply, "like": "3dgs"}},
+                {"name": "peer-clean", "peer": {"ply": str(tmp_path / "missing.ply"), "like": "3dgs-clean"}},
+            ],
+        )
+    )
+    out = tmp_path / "out"
+    runner = SuiteRunner(suite, output=out)
+    first = runner.run()
+    by = {r["method"]: r for r in first["runs"]}
+    assert by["peer"]["status"] == "failed" and "the peer's PLY file is not there" in by["peer"]["error"]
+    assert by["peer-clean"]["status"] == "failed" and "missing.ply" in by["peer-clean"]["error"]
+    model = load_ply(out / "synthetic" / "f" / "3dgs" / "scene.ply")
+    (tmp_path / "peer").mkdir()
+    save_ply(model, tmp_path / "peer" / "synthetic-f.ply")  # no frame comment: another tool's file
+    again = {r["method"]: r for r in SuiteRunner(suite, output=out).run()["runs"]}
+    assert again["3dgs"]["status"] == "cached" and again["peer"]["status"] == "done"
+    assert again["peer"]["psnr"] == pytest.approx(again["3dgs"]["psnr"], abs=1e-4)
+    assert again["peer"]["num_gaussians"] == again["3dgs"]["num_gaussians"] and again["peer"]["train_seconds"] is None
+    assert (out / "synthetic" / "f" / "peer" / "eval.json").is_file()
+    third = {r["method"]: r for r in SuiteRunner(suite, output=out).run()["runs"]}
+    assert third["peer"]["status"] == "cached" and third["peer"]["psnr"] == again["peer"]["psnr"]
+    assert "| peer |" in (out / "results.md").read_text()
+    assert any("peer" in line and "scored" in line for line in SuiteRunner(suite, output=out).plan())
+
+
+def test_a_peer_must_be_scored_like_a_trained_method():
+    with pytest.raises(ConfigError, match="peer.like must name a method the suite trains"):
+        suite_from_dict(_minimal(methods=[{"name": "3dgs"}, {"name": "p", "peer": {"ply": "x.ply", "like": "nope"}}]))
+    with pytest.raises(ConfigError, match=r"peer must be \{ply: FILE, like: METHOD\}"):
+        suite_from_dict(_minimal(methods=[{"name": "p", "peer": {"ply": "x.ply"}}]))
