@@ -16,12 +16,15 @@ DIFF_GAIN = 4.0
 """Gain of the |degraded − clean| row."""
 
 
-def theta_label(theta: dict) -> list[str]:
-    """Two short lines describing a view's θ (from ``Theta.to_dict()``): rain rate, class and count; fog."""
+def theta_label(theta: dict, drawn: dict[str, int] | None = None) -> list[str]:
+    """Two short lines describing a view's θ (from ``Theta.to_dict()``): rain rate, class and count (``drawn``: the
+    Gaussians each weather model drew in the view instead, e.g. ``{"snow": 1520}``); fog."""
     rain, fog = theta.get("rain", {}), theta.get("fog", {})
     p = rain.get("precip_mm_per_h") or 0.0
     line1 = f"P {p:.1f} mm/h {rain.get('intensity_class', '?')}"
-    if rain.get("active"):
+    if drawn:
+        line1 += ", " + ", ".join(f"{name} {n}" for name, n in drawn.items())
+    elif rain.get("active"):
         line1 += f", N {rain.get('count', 0)}"
     vis = fog.get("visibility_m")
     beta = fog.get("beta_veil_per_m") or 0.0
@@ -38,7 +41,7 @@ def record_label(record: dict) -> list[str]:
     """Two short lines describing a degraded view from its weather.json record: θ (physical family) or the met
     conditions and what the independent family drew."""
     if "theta" in record:
-        return theta_label(record["theta"])
+        return theta_label(record["theta"], record.get("gaussians_per_model"))
     cond = record.get("conditions", {})
     rain = record.get("rain")
     line1 = f"P {cond.get('precip_mm_h') or 0.0:.1f} mm/h {cond.get('wmo_class', '?')}"

@@ -177,9 +177,14 @@ def synthesise(args: SynthConfig, console: Console | None = None) -> Path:
         )
     for t, th in zip(plan.times, plan.distinct):
         r, f = th.rain, th.fog
+        streaks = (
+            f"{r.count} streaks/view (near {r.near_m:.2f} m, far {r.far_m:.2f} m), "
+            if "rain" in kinds.split("+")
+            else ""
+        )
         console.print(
-            f"θ{' at ' + t if t else ''}: P {r.precip_mm_per_h:.2f} mm/h ({r.intensity_class}), "
-            f"{r.count} streaks/view (near {r.near_m:.2f} m, far {r.far_m:.2f} m, exposure {r.exposure_s:.4g} s), "
+            f"θ{' at ' + t if t else ''}: P {r.precip_mm_per_h:.2f} mm/h ({r.intensity_class}), {streaks}"
+            f"exposure {r.exposure_s:.4g} s, "
             f"visibility {_vis(f.visibility_m)}, fog {'on' if f.active else 'off'}, "
             f"lens drops {th.drops.count}",
             highlight=False,

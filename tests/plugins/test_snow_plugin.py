@@ -71,6 +71,9 @@ def test_metegs_synth_synthesises_snow(snow_plugin, tmp_path):
     assert weather["kinds"] == "snow"
     views = weather["views"]
     assert all(v["gaussians_per_model"]["snow"] > 0 and not v["fog"] for v in views)
+    from metegs.synth.contact_sheet import record_label
+
+    assert f"snow {views[0]['gaussians_per_model']['snow']}" in record_label(views[0])[0]  # not θ_rain's streak count
     snowy = load_image(out / views[0]["image"])
     clean = load_image(out / views[0]["clean_image"])
     brighter = (snowy - clean).max(-1) > 2 / 255
