@@ -11,6 +11,9 @@ every worker reaches (one machine, or a shared file system).
 
 from __future__ import annotations
 
+import os
+import socket
+import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -59,6 +62,8 @@ def perform_on_worker(runner: SuiteRunner, job: Job, *needed: JobResult) -> JobR
     log.parent.mkdir(parents=True, exist_ok=True)
     with open(log, "a", encoding="utf-8") as stream:
         runner.console = Console(file=stream, width=120, soft_wrap=True)
+        runner.console.print(f"{job.key}: started on {socket.gethostname()} (pid {os.getpid()})", highlight=False)
+        stream.flush()  # the driver counts the job as running from here
         out = runner.perform(job, {d: r.value for d, r in zip(job.deps, needed)}, threads=job_threads(runner, job))
     for record in out.records + out.support:
         if record.get("status") == "failed":
@@ -83,7 +88,8 @@ class RayExecutor:
             raise ConfigError(f"--executor ray needs Ray: {RAY_INSTALL}") from None
         started = False
         if not ray.is_initialized():
-            ray.init(address=self.address, include_dashboard=False, log_to_driver=False)
+            local = {"include_dashboard": False} if self.address is None else {}  # a cluster keeps its dashboard
+            ray.init(address=self.address, log_to_driver=False, **local)
             started = True
         try:
             return self._run(ray, runner, jobs)
@@ -91,11 +97,27 @@ class RayExecutor:
             if started:
                 ray.shutdown()
 
+    @staticmethod
+    def _result(ray, ref, job: Job, runner: SuiteRunner) -> JobResult:
+        """A finished task's result; a task that raised (its worker died, or a job it needs failed) is recorded as
+        failed with the error and its log."""
+        try:
+            return ray.get(ref)
+        except Exception as exc:  # noqa: BLE001 - whatever the worker or Ray raised
+            log = job_log(runner.output, job)
+            reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            return runner.job_failed(
+                job,
+                f"{type(exc).__name__} on the Ray worker: {reason}",
+                str(log.relative_to(runner.output)) if log.is_file() else None,
+            )
+
     def _run(self, ray, runner: SuiteRunner, jobs: list[Job]) -> dict[str, JobResult]:
         task = ray.remote(perform_on_worker)
         shared = ray.put(runner)
         refs: dict[str, Any] = {}
         by_ref: dict[Any, Job] = {}
+        since = time.time()
         for job in jobs:  # plan order: a job's inputs are submitted before it
             ref = task.options(
                 num_cpus=float(job.resources.get("cpus", 1)),
@@ -107,30 +129,44 @@ class RayExecutor:
             refs[job.key] = ref
             by_ref[ref] = job
         outputs: dict[str, JobResult] = {}
-        runs = sum(1 for j in jobs if j.action in ("clean", "run", "peer"))
+        runs = [j for j in jobs if j.action in RUN_ACTIONS]
+        ended = {"done": 0, "failed": 0}
         columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
         with Progress(*columns, console=runner.console, transient=True) as progress:
-            bar = progress.add_task(f"runs on Ray ({len(jobs)} jobs)", total=runs)
+            bar = progress.add_task("runs on Ray", total=len(runs))
             pending = list(refs.values())
             while pending:
-                done, pending = ray.wait(pending, num_returns=1)
-                job = by_ref[done[0]]
-                try:
-                    out = ray.get(done[0])
-                except Exception as exc:  # noqa: BLE001 - the worker died, or a job it needs failed
-                    log = job_log(runner.output, job)
-                    reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-                    out = runner.job_failed(
-                        job,
-                        f"{type(exc).__name__} on the Ray worker: {reason}",
-                        str(log.relative_to(runner.output)) if log.is_file() else None,
-                    )
-                for record in out.records + out.support:
-                    runner.announce(record)
-                outputs[job.key] = out
-                if job.action in ("clean", "run", "peer"):
-                    progress.advance(bar)
+                done, pending = ray.wait(pending, num_returns=1, timeout=1.0)
+                for ref in done:
+                    job = by_ref[ref]
+                    out = self._result(ray, ref, job, runner)
+                    for record in out.records + out.support:
+                        runner.announce(record)
+                    for record in out.records:
+                        ended["failed" if record["status"] == "failed" else "done"] += 1
+                    outputs[job.key] = out
+                    if job.action in RUN_ACTIONS:
+                        progress.advance(bar)
+                running = sum(
+                    1 for r in pending if by_ref[r].action in RUN_ACTIONS and started(runner, by_ref[r], since)
+                )
+                left = len(runs) - sum(1 for j in runs if j.key in outputs)
+                progress.update(
+                    bar,
+                    description=f"runs on Ray: {left - running} queued, {running} running, {ended['done']} done, "
+                    f"{ended['failed']} failed",
+                )
         return outputs
+
+
+RUN_ACTIONS = ("clean", "run", "peer")
+"""Jobs that make a row of the results (the others prepare photos)."""
+
+
+def started(runner: SuiteRunner, job: Job, since: float) -> bool:
+    """Whether ``job`` has begun on a worker since ``since`` (its log was written to)."""
+    log = job_log(runner.output, job)
+    return log.is_file() and log.stat().st_mtime >= since
 
 
 def make_executor(name: str, address: str | None = None) -> LocalExecutor | RayExecutor:
