@@ -41,6 +41,12 @@ def read_config_file(path: Path) -> dict:
         warnings.warn(f"{path}: ignoring {name!r}: {RETIRED_FIELDS[name]}", stacklevel=2)
     for model, options in (data.pop("weather_options", None) or {}).items():  # now each model's own typed field
         data.setdefault(model.replace("-", "_"), {}).update(options)
+    missing = [n for n in data.get("weather") or () if isinstance(n, str) and n not in registry("weather")]
+    if missing:
+        raise ConfigError(
+            f"{path}: weather model(s) {', '.join(missing)} are not registered here: install the plugin that provides "
+            f"them (`metegs-train --help` lists the registered ones: {', '.join(registry('weather').names())})"
+        )
     return data
 
 

@@ -95,3 +95,16 @@ def test_a_config_with_a_retired_field_still_opens_and_says_why(tmp_path):
     (tmp_path / "new.yaml").write_text("densify_thru_fog: 10\n")  # a field that never was stays an error
     with pytest.raises(MetegsError, match="densify_thru_fog"):
         parse_args(["metegs-full", "--config", str(tmp_path / "new.yaml")])
+
+
+def test_a_run_of_a_weather_plugin_that_is_not_installed_says_so(tmp_path):
+    from metegs.engine.run import load_run_config
+
+    (tmp_path / "config.yml").write_text(
+        "method: metegs-full\nweather: [snowfall, fog-analytic]\nsnowfall: {count: 3}\n"
+    )
+    for load in (lambda: parse_args(["--config", str(tmp_path / "config.yml")]), lambda: load_run_config(tmp_path)):
+        with pytest.raises(
+            MetegsError, match=r"config.yml: weather model\(s\) snowfall are not registered here: install"
+        ):
+            load()
