@@ -34,3 +34,28 @@ def _no_downloads(monkeypatch):
     from metegs.eval import backbones
 
     monkeypatch.setattr(backbones, "FAILED_DOWNLOADS", {})
+
+
+SNOW_SRC = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "plugins", "metegs-snow", "src")
+"""The example snow plugin's sources (plugins/metegs-snow/src)."""
+
+
+@pytest.fixture
+def snow_plugin(monkeypatch):
+    """Rediscover plugins with the example snow plugin importable from its source folder (through ``METEGS_PLUGINS``,
+    as without installing it); the registries are restored after."""
+    import sys
+
+    import metegs.registry as reg
+
+    reg.ensure_plugins_loaded()  # the built-ins register once per process: have them in what is restored
+    saved = {k: dict(r._entries) for k, r in reg._REGISTRIES.items()}
+    monkeypatch.syspath_prepend(SNOW_SRC)
+    monkeypatch.setenv("METEGS_PLUGINS", "metegs_snow.register")
+    monkeypatch.setattr(reg, "failed_plugins", {})
+    monkeypatch.setitem(reg._plugins_state, "loaded", False)
+    sys.modules.pop("metegs_snow.register", None)
+    yield
+    sys.modules.pop("metegs_snow.register", None)
+    for k, r in reg._REGISTRIES.items():
+        r._entries = saved[k]

@@ -37,8 +37,12 @@ def test_the_common_cases_have_presets():
 
 
 @pytest.mark.parametrize("preset", PRESETS, ids=lambda p: p.name)
-def test_preset_loads_and_applies_every_value(preset):
+def test_preset_loads_and_applies_every_value(preset, request):
     text = preset.read_text()
+    if "snow" in (yaml.safe_load(text).get("weather") or ()):
+        request.getfixturevalue(
+            "snow_plugin"
+        )  # the preset needs the example plugin (pip install ./plugins/metegs-snow)
     assert text.startswith("#") and "metegs-train" in text.split("\n\n")[0], "say what it is for and how to run it"
     overrides = yaml.safe_load(text)
     method = overrides.pop("method", None)

@@ -4,33 +4,13 @@ Runs from the source tree through ``METEGS_PLUGINS`` (so CI needs no install); t
 entry point skips when the package is not installed (``pip install ./plugins/metegs-snow``).
 """
 
-import sys
 from dataclasses import replace
 from importlib import metadata
-from pathlib import Path
 
 import pytest
 
 import metegs.registry as reg
 from metegs.registry import registry
-
-SNOW_SRC = Path(__file__).resolve().parents[2] / "plugins" / "metegs-snow" / "src"
-
-
-@pytest.fixture
-def snow_plugin(monkeypatch):
-    """Rediscover plugins with the snow plugin importable from its source folder; restore the registries after."""
-    reg.ensure_plugins_loaded()  # the built-ins register once per process: have them in what is restored
-    saved = {k: dict(r._entries) for k, r in reg._REGISTRIES.items()}
-    monkeypatch.syspath_prepend(str(SNOW_SRC))
-    monkeypatch.setenv("METEGS_PLUGINS", "metegs_snow.register")
-    monkeypatch.setattr(reg, "failed_plugins", {})
-    monkeypatch.setitem(reg._plugins_state, "loaded", False)
-    sys.modules.pop("metegs_snow.register", None)
-    yield
-    sys.modules.pop("metegs_snow.register", None)
-    for k, r in reg._REGISTRIES.items():
-        r._entries = saved[k]
 
 
 def test_snow_is_listed_and_its_options_are_typed_flags(snow_plugin, capsys):
