@@ -36,26 +36,37 @@ def _no_downloads(monkeypatch):
     monkeypatch.setattr(backbones, "FAILED_DOWNLOADS", {})
 
 
-SNOW_SRC = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "plugins", "metegs-snow", "src")
-"""The example snow plugin's sources (plugins/metegs-snow/src)."""
+PLUGINS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "plugins")
+"""The example plugin packages (plugins/)."""
 
 
-@pytest.fixture
-def snow_plugin(monkeypatch):
-    """Rediscover plugins with the example snow plugin importable from its source folder (through ``METEGS_PLUGINS``,
-    as without installing it); the registries are restored after."""
+def plugin_from_source(monkeypatch, package: str, module: str):
+    """Rediscover plugins with an example plugin importable from ``plugins/<package>/src`` and named by
+    ``METEGS_PLUGINS=<module>`` (as without installing it); yields, then restores the registries."""
     import sys
 
     import metegs.registry as reg
 
     reg.ensure_plugins_loaded()  # the built-ins register once per process: have them in what is restored
     saved = {k: dict(r._entries) for k, r in reg._REGISTRIES.items()}
-    monkeypatch.syspath_prepend(SNOW_SRC)
-    monkeypatch.setenv("METEGS_PLUGINS", "metegs_snow.register")
+    monkeypatch.syspath_prepend(os.path.join(PLUGINS, package, "src"))
+    monkeypatch.setenv("METEGS_PLUGINS", module)
     monkeypatch.setattr(reg, "failed_plugins", {})
     monkeypatch.setitem(reg._plugins_state, "loaded", False)
-    sys.modules.pop("metegs_snow.register", None)
+    sys.modules.pop(module, None)
     yield
-    sys.modules.pop("metegs_snow.register", None)
+    sys.modules.pop(module, None)
     for k, r in reg._REGISTRIES.items():
         r._entries = saved[k]
+
+
+@pytest.fixture
+def snow_plugin(monkeypatch):
+    """The example snow plugin (plugins/metegs-snow), loaded from its sources."""
+    yield from plugin_from_source(monkeypatch, "metegs-snow", "metegs_snow.register")
+
+
+@pytest.fixture
+def idr_plugin(monkeypatch):
+    """The example IDR/NeuS parser plugin (plugins/metegs-parser-idr), loaded from its sources."""
+    yield from plugin_from_source(monkeypatch, "metegs-parser-idr", "metegs_parser_idr.register")

@@ -4,34 +4,13 @@ a data parser that metegs detects and trains on, with no change to metegs.
 Runs from the source tree through ``METEGS_PLUGINS`` (so CI needs no install).
 """
 
-import sys
 from pathlib import Path
 
 import cv2
 import numpy as np
-import pytest
 
-import metegs.registry as reg
 from metegs.data.config import DatasetConfig, SyntheticSceneConfig
 from metegs.data.parsers.base import detect_parser, parse_scene
-
-IDR_SRC = Path(__file__).resolve().parents[2] / "plugins" / "metegs-parser-idr" / "src"
-
-
-@pytest.fixture
-def idr_plugin(monkeypatch):
-    """Rediscover plugins with the parser plugin importable from its source folder; restore the registries after."""
-    reg.ensure_plugins_loaded()  # the built-ins register once per process: have them in what is restored
-    saved = {k: dict(r._entries) for k, r in reg._REGISTRIES.items()}
-    monkeypatch.syspath_prepend(str(IDR_SRC))
-    monkeypatch.setenv("METEGS_PLUGINS", "metegs_parser_idr.register")
-    monkeypatch.setattr(reg, "failed_plugins", {})
-    monkeypatch.setitem(reg._plugins_state, "loaded", False)
-    sys.modules.pop("metegs_parser_idr.register", None)
-    yield
-    sys.modules.pop("metegs_parser_idr.register", None)
-    for k, r in reg._REGISTRIES.items():
-        r._entries = saved[k]
 
 
 def idr_scene(folder: Path):
