@@ -43,6 +43,9 @@ from metegs.config import apply_overrides, to_dict
 from metegs.errors import ConfigError, MetegsError
 from metegs.files import atomic_write_text
 
+DEFAULT_RESTORERS = {"rain": "kang2012", "fog": "dcp"}
+"""The 2D restorer of each weather kind for methods on restored photos that name none."""
+
 RESULT_KEYS = ("psnr", "ssim", "lpips", "lpips_reason", "num_gaussians", "train_seconds", "steps", "reference")
 
 
@@ -564,9 +567,14 @@ class SuiteRunner:
             return {"error": f"{type(exc).__name__}: {exc}"}
         return {"data": str(data), "weather": weather}
 
+    @staticmethod
+    def restorer_names(method: MethodSpec) -> dict[str, str]:
+        """The restorer of each weather kind for ``method``: its ``restorer``, else kang2012 for rain, dcp for fog."""
+        return {**DEFAULT_RESTORERS, **method.restorer}
+
     def restored_folder(self, kind: str, method: MethodSpec) -> str:
         """The folder of a condition's photos restored for ``method`` (shared by methods with the same restorers)."""
-        names = {**{"rain": "kang2012", "fog": "dcp"}, **method.restorer}
+        names = self.restorer_names(method)
         return "restored-" + "+".join(names[k] for k in ("rain", "fog") if k in kind.split("+"))
 
     def _job_restore(self, job, scene, method, inputs):
@@ -580,9 +588,8 @@ class SuiteRunner:
         target = self.output / scene.name / job.condition / self.restored_folder(condition.kind, method)
         if (target / "restore.json").is_file():
             return {"data": str(target), "info": json.loads((target / "restore.json").read_text())}
-        names = {**{"rain": "kang2012", "fog": "dcp"}, **method.restorer}
         try:
-            restorer = restorer_for_kinds(condition.kind, names, method.restorer_options)
+            restorer = restorer_for_kinds(condition.kind, self.restorer_names(method), method.restorer_options)
             self.console.print(f"{scene.name} / {condition.name}: restoring the photos with {restorer.name}")
             folder, info = restored_dataset(target, Path(data["data"]), self.dataset_config(scene), restorer)
         except MetegsError as exc:
