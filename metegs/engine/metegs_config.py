@@ -10,6 +10,7 @@ from typing import Annotated, TypeVar
 from metegs.densify.depth_prune import DepthPruneConfig
 from metegs.densify.extra_points import ExtraPointsConfig
 from metegs.engine.config import TrainConfig
+from metegs.losses.dark_channel import DarkChannelPriorConfig
 from metegs.losses.perceptual import PerceptualLossConfig
 from metegs.losses.robust import RobustMaskConfig
 from metegs.models.gtn import GTNConfig
@@ -81,6 +82,8 @@ class MeteGSConfig(TrainConfig):
     """Options of `lens-droplets` (when listed in `weather`)."""
     robust: RobustMaskConfig = field(default_factory=RobustMaskConfig)
     """Trimmed photometric loss of the weather branch: pixels no model explains in a view are left out of it."""
+    dark_channel: DarkChannelPriorConfig = field(default_factory=DarkChannelPriorConfig)
+    """Blind mode: the photos dehazed by the learned medium keep the dark channel of clear views (sets β)."""
     compare_baseline: bool = True
     """After training, train plain `3dgs` on the same photos and print both clean-view metrics."""
 

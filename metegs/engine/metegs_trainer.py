@@ -17,6 +17,7 @@ from metegs.engine.metegs_config import MeteGSConfig
 from metegs.engine.optim import adam
 from metegs.engine.trainer import StepRender, Trainer
 from metegs.errors import ConfigError
+from metegs.losses.dark_channel import dark_channel_loss
 from metegs.losses.robust import inlier_weights
 from metegs.models.gtn import may_be_visible
 from metegs.render import RenderSettings
@@ -58,12 +59,12 @@ class MeteGSTrainer(Trainer):
 
     def setup_method(self) -> None:
         c = self.config
+        has_clean = self.dataset.clean_images is not None
+        self.use_clean = has_clean and c.clean_supervision
         self.weather_models: list[WeatherModel] = self._build_weather() if c.weather_branch else []
         if not c.weather_branch:
             self.decide("weather", "off (ablation): the scene alone fits the degraded photos")
         self.gtn = self._build_gtn()
-        has_clean = self.dataset.clean_images is not None
-        self.use_clean = has_clean and c.clean_supervision
         if not has_clean:
             self.decide("clean branch", "off: the scene has no clean references (blind mode)")
         elif not c.clean_supervision:
@@ -90,6 +91,7 @@ class MeteGSTrainer(Trainer):
                 f"on from step {self.robust_from}: pixels {'brighter' if r.brighter_only else 'further'} than "
                 f"{r.k_sigma:g} robust sigmas of their view's residuals (grown by {r.dilate_px} px) are left out",
             )
+        self.dehazing = self._dehazing_media()
         self._feature_cache: dict[int, list[dict[str, torch.Tensor]]] = {}
         self._setup_extra_points()
         self.method_optimizers = self._method_optimizers()
@@ -148,7 +150,10 @@ class MeteGSTrainer(Trainer):
         if not fog.log_beta.requires_grad:
             return
         mode, beta = fog.config.record_prior, f"{float(fog.record_log_beta.exp().mean()):.2e}/m"
-        if mode == "auto":
+        if mode == "auto" and self._dark_channel_on():
+            fog.use_record_prior = False
+            why = "the dark channel prior measures β from the photos; the record's is where it starts"
+        elif mode == "auto":
             spread = distance_spread(self.dataset.cameras[self.dataset.train_indices], self.model.means.detach())
             fog.use_record_prior = spread is None or spread < MEASURABLE_DISTANCE_SPREAD
             seen = "unknown" if spread is None else f"{spread:.2f}"
@@ -169,6 +174,33 @@ class MeteGSTrainer(Trainer):
             self.decide(f"{name} layers", "on: β learns how it changes with height")
         else:
             self.decide(f"{name} layers", f"off: --{name}.no-layered")
+        if not fog.use_record_prior and fog.learn_patches():
+            g = fog.patch_log_scale.shape
+            self.decide(f"{name} patches", f"on: per view, a {g[2]}x{g[1]} grid scales the optical depth")
+
+    def _dark_channel_on(self) -> bool:
+        """Whether the dark-channel prior holds the learnable media: blind training with a positive weight."""
+        return not self.use_clean and self.config.dark_channel.weight > 0
+
+    def _dehazing_media(self) -> list[WeatherModel]:
+        """The media the dark-channel prior holds (`dark_channel`): learnable ones, in blind mode only (clean
+        references measure β and A themselves)."""
+        c = self.config.dark_channel
+        media = [m for m in self.weather_models if hasattr(m, "dehaze") and m.log_beta.requires_grad]
+        if not media:
+            return []
+        if self.use_clean:
+            self.decide("dark channel prior", "off: the clean references measure the medium")
+            return []
+        if c.weight <= 0:
+            self.decide("dark channel prior", "off: weight 0")
+            return []
+        self.decide(
+            "dark channel prior",
+            f"on (weight {c.weight:g}): the photos dehazed by the medium keep {c.quantile:.0%} of their dark "
+            "channel at zero, as clear views do",
+        )
+        return media
 
     def _build_gtn(self):
         from metegs.models.gtn import GaussianTransformationNetwork
@@ -314,6 +346,11 @@ class MeteGSTrainer(Trainer):
             prior = m.prior(index)
             if prior is not None:
                 loss = loss + prior
+        for m in self.dehazing:
+            dehazed, valid = m.dehaze(target, render.out, index, c.dark_channel.min_transmission)
+            dark = dark_channel_loss(dehazed, valid, c.dark_channel)
+            stats["dark_channel"] = float(dark.detach())
+            loss = loss + c.dark_channel.weight * dark
         if self.use_clean and (c.weights.clean > 0 or self.perceptual is not None):
             settings = RenderSettings(background=background, sh_degree=self.model.active_sh_degree)
             clean = self.rasterizer.render(self.model.activated(), self.dataset.cameras[index], settings)

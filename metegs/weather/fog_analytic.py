@@ -67,6 +67,11 @@ class FogAnalyticConfig(WeatherModelConfig):
     """Weight of that prior, record_prior_weight · mean((ln β − ln β_θ)²)."""
     layered: bool = True
     """Where the photos measure β (the record prior off), also learn how β changes with height."""
+    patches: Annotated[int, NON_NEGATIVE] = 0
+    """Where the photos measure β, also learn per view a coarse grid of this many cells along the longer side that
+    scales the optical depth: fog that varies in patches (0: off)."""
+    patches_weight: Annotated[float, NON_NEGATIVE] = 0.01
+    """Weight of the patches' prior, mean of their squared log-scales (they stay at 1 unless the photos pay)."""
 
     def for_synthesis(self, request: SynthesisRequest) -> FogAnalyticConfig | None:
         """The medium of fog, and of rain beyond the streaks' reach (its veil, weather-physics.md) when it rains: fixed,
@@ -78,6 +83,15 @@ class FogAnalyticConfig(WeatherModelConfig):
         if airlight is None and request.theta.fog.airlight_rgb is None:
             airlight = request.airlight()
         return dataclasses.replace(self, airlight=airlight, include_rain_veil="rain" in request.kinds, learnable=False)
+
+
+def patch_grid(cameras, cells: int) -> tuple[int, int, int]:
+    """(views, rows, columns) of a per-view grid with ``cells`` along the longer image side (0: an empty grid)."""
+    if cells <= 0:
+        return (len(cameras), 0, 0)
+    w, h = float(cameras.width.max()), float(cameras.height.max())
+    short = max(1, round(cells * min(w, h) / max(w, h)))
+    return (len(cameras), short, cells) if w >= h else (len(cameras), cells, short)
 
 
 class FogAnalytic(WeatherModel):
@@ -102,6 +116,8 @@ class FogAnalytic(WeatherModel):
         self.height_rate = torch.nn.Parameter(torch.zeros(()), requires_grad=False)
         """100·k: ln β falls by this much per 100 m of height (0: uniform; learned by `learn_layers`; per 100 m so
         that an optimiser's steps of ~0.01 move it by a small fraction of a realistic 0.01-0.1 per metre)."""
+        self.patch_log_scale = torch.nn.Parameter(torch.zeros(patch_grid(scene.cameras, config.patches)), False)
+        """[V, gh, gw] per view, ln of the factor on the optical depth in each cell of a coarse grid (`patches`)."""
         up = scene.up.float() / scene.up.float().norm().clamp_min(1e-12)
         self.register_buffer("up", up, persistent=False)
         self.register_buffer("reference_height", (scene.cameras.centers.float() @ up).mean(), persistent=False)
@@ -113,6 +129,18 @@ class FogAnalytic(WeatherModel):
             return False
         self.height_rate.requires_grad_(True)
         return True
+
+    def learn_patches(self) -> bool:
+        """Let the optical depth vary in patches per view from now on (`patches` > 0, learnable) -> whether it does."""
+        if not (self.config.patches > 0 and self.config.learnable):
+            return False
+        self.patch_log_scale.requires_grad_(True)
+        return True
+
+    @property
+    def patchy(self) -> bool:
+        """Whether the optical depth varies in patches per view (learned, or loaded non-zero)."""
+        return self.patch_log_scale.requires_grad or bool(self.patch_log_scale.detach().any())
 
     @property
     def layered(self) -> bool:
@@ -141,14 +169,41 @@ class FogAnalytic(WeatherModel):
     def apply(self, rgb: torch.Tensor, out: RenderOutput, view: int, settings: RenderSettings) -> torch.Tensor:
         background = settings.background_tensor(rgb)
         color = rgb - (1.0 - out.alpha)[..., None] * background  # premultiplied scene colour
+        distance = self.optical_distance(out.depth, out.alpha, view)
+        return fog_composite(color, out.alpha, distance, self.beta_rgb.to(rgb), self.airlight.to(rgb))
+
+    def optical_distance(self, depth: torch.Tensor, alpha: torch.Tensor, view: int) -> torch.Tensor:
+        """[H, W] metres along each pixel's ray to the rendered surface, times the height profile's factor (0 where
+        nothing is rendered). depth [H, W] rendered z-depth (scene units), alpha [H, W] rendered opacity."""
         if view not in self._rays:  # the cameras are fixed: one ray-length map per view
-            self._rays[view] = ray_lengths(self.scene.cameras[view], out.height, out.width)
-        rays = self._rays[view].to(rgb)
-        distance = out.depth * rays * self.scene.metres_per_unit
-        distance = torch.where(out.alpha > 1e-6, distance, torch.zeros_like(distance))
+            self._rays[view] = ray_lengths(self.scene.cameras[view], depth.shape[0], depth.shape[1])
+        rays = self._rays[view].to(depth)
+        distance = depth * rays * self.scene.metres_per_unit
+        distance = torch.where(alpha > 1e-6, distance, torch.zeros_like(distance))
         if self.layered:
             distance = distance * self.height_factor(self.rise(view, rays), distance, view)
-        return fog_composite(color, out.alpha, distance, self.beta_rgb.to(rgb), self.airlight.to(rgb))
+        if self.patchy:
+            grid = self.patch_log_scale[view].to(distance)[None, None]
+            scale = torch.nn.functional.interpolate(grid, size=distance.shape, mode="bilinear", align_corners=False)
+            distance = distance * torch.exp(scale[0, 0])
+        return distance
+
+    def dehaze(
+        self, photo: torch.Tensor, out: RenderOutput, view: int, min_transmission: float
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The photo with this medium taken out along the rendered (detached) depth, J = (I − A)/t + A, and where
+        that is meaningful: the surface rendered (opacity > 0.5) and seen through at least ``min_transmission``.
+        photo [H, W, 3] -> (J [H, W, 3], valid [H, W] bool). Only β's level carries gradients, all three channels
+        together: a dark channel is one channel's in each patch, so it cannot tell β's colour, which is the photos'
+        to fit like the airlight (dehazing estimates A before the transmission) and the geometry."""
+        alpha = out.alpha.detach()
+        distance = self.optical_distance(out.depth.detach(), alpha, view)
+        level = self.log_beta.mean()
+        beta = torch.exp(level + (self.log_beta - level).detach())
+        t = torch.exp(-distance[..., None] * beta.to(photo))
+        valid = (alpha > 0.5) & (t.detach().amin(-1) >= min_transmission)
+        airlight = self.airlight.detach().to(photo)
+        return (photo - airlight) / t.clamp_min(min_transmission) + airlight, valid
 
     def seen_through(self, colour: torch.Tensor, alpha: torch.Tensor, depth: torch.Tensor, view: int) -> torch.Tensor:
         """``colour·t + A·α·(1 − t)``, t = exp(−β·d) along each pixel's ray to ``depth`` (see `WeatherModel`)."""
@@ -188,16 +243,20 @@ class FogAnalytic(WeatherModel):
         return torch.exp((-k * camera_height * self.scene.metres_per_unit).clamp(-20.0, 20.0)) * mean_along
 
     def prior(self, view: int) -> torch.Tensor | None:
-        """record_prior_weight · mean((ln β − ln β_θ)²), or None when β is fixed or the prior is off."""
-        if not (self.use_record_prior and self.log_beta.requires_grad and self.config.record_prior_weight > 0):
-            return None
-        gap = self.log_beta - self.record_log_beta
-        return self.config.record_prior_weight * (gap**2).mean()
+        """record_prior_weight · mean((ln β − ln β_θ)²) when the record prior is on, plus patches_weight · mean of the
+        view's squared patch log-scales when they learn; None when neither."""
+        terms = []
+        if self.use_record_prior and self.log_beta.requires_grad and self.config.record_prior_weight > 0:
+            terms.append(self.config.record_prior_weight * ((self.log_beta - self.record_log_beta) ** 2).mean())
+        if self.patch_log_scale.requires_grad and self.config.patches_weight > 0:
+            terms.append(self.config.patches_weight * (self.patch_log_scale[view] ** 2).mean())
+        return sum(terms) if terms else None
 
     def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
         """As torch's; a checkpoint saved before β could change with height loads as a uniform medium."""
         state = dict(state_dict)
         state.setdefault("height_rate", torch.zeros_like(self.height_rate))
+        state.setdefault("patch_log_scale", torch.zeros_like(self.patch_log_scale))
         return super().load_state_dict(state, strict, assign)
 
     def summary(self) -> dict:

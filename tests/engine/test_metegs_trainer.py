@@ -117,6 +117,33 @@ def test_fog_record_prior_is_on_where_the_views_see_the_scene_from_one_distance(
     assert facing.decisions["fog-analytic layers"].startswith("off:") and not fog.layered
 
 
+def test_blind_training_measures_the_fog_by_the_dark_channel_and_references_by_themselves(tmp_path):
+    """Blind, the dark-channel prior holds the medium (the record's β is where it starts, not a prior) and moves β
+    from the first step; with clean references, or at weight 0, the prior is off and the record prior decides."""
+    from metegs.losses.dark_channel import DarkChannelPriorConfig
+
+    conditions = ConditionsConfig(precip_mm_h=0.0, visibility_m=300.0, metres_per_unit=100.0)
+    blind = tiny_metegs(tmp_path / "blind", conditions=conditions, max_steps=40, clean_supervision=False).setup()
+    assert blind.decisions["dark channel prior"].startswith("on (weight 1)")
+    assert blind.decisions["fog-analytic prior"].startswith("off: the dark channel prior measures β")
+    (fog,) = blind.dehazing
+    assert fog.name == "fog-analytic" and not fog.use_record_prior
+    start = fog.log_beta.detach().clone()
+    # once the surfaces are opaque (the prior looks through rendered surfaces only), β moves by it
+    held = [blind.train_step(i).get("dark_channel", 0.0) for i in blind.dataset.train_indices * 3]
+    assert max(held) > 0.0 and not torch.equal(fog.log_beta.detach(), start)
+    referenced = tiny_metegs(tmp_path / "refs", conditions=conditions, max_steps=1).setup()
+    assert referenced.dehazing == [] and referenced.decisions["dark channel prior"].startswith("off: the clean")
+    off = tiny_metegs(
+        tmp_path / "off",
+        conditions=conditions,
+        max_steps=1,
+        clean_supervision=False,
+        dark_channel=DarkChannelPriorConfig(weight=0.0),
+    ).setup()
+    assert off.dehazing == [] and off.decisions["fog-analytic prior"].startswith("off: the views see a scene point")
+
+
 def test_clean_views_look_into_the_airlight_where_the_scene_is_transparent(trained):
     """Blind training composites the fog's airlight behind the scene; clean renders and evaluation must too,
     else a see-through scene looks dark (a 10 dB loss measured on light rain)."""

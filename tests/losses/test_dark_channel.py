@@ -1,0 +1,104 @@
+"""The dark-channel prior: the channel against a plain loop, the pinball loss against the quantile, dehazing against
+the fog it inverts, and β recovered from foggy photos alone."""
+
+import pytest
+import torch
+
+from metegs.losses.dark_channel import DarkChannelPriorConfig, dark_channel, dark_channel_loss, patch_size, pinball
+from metegs.meteo import CameraSpec, theta_from_values
+from metegs.render.base import RenderOutput, RenderSettings
+from metegs.weather import WeatherScene
+from metegs.weather.fog_analytic import FogAnalytic, FogAnalyticConfig
+from tests.weather.test_weather_physics import F, H, W, cameras
+
+AIRLIGHT = (0.8, 0.82, 0.86)
+
+
+def test_dark_channel_is_the_min_over_channels_and_patch():
+    image = torch.rand(13, 17, 3, generator=torch.Generator().manual_seed(0))
+    fast = dark_channel(image, 5)
+    for y in range(13):
+        for x in range(17):
+            window = image[max(y - 2, 0) : y + 3, max(x - 2, 0) : x + 3]
+            assert float(fast[y, x]) == float(window.min())
+
+
+def test_patch_follows_the_image_size_and_stays_odd():
+    assert patch_size(400, 600) == 15 and patch_size(250, 250) == 7 and patch_size(20, 30) == 3
+    assert patch_size(100, 100, patch_px=8) == 9
+
+
+def test_pinball_is_minimised_at_the_quantile():
+    values = torch.randn(2001, generator=torch.Generator().manual_seed(1))
+    shifts = torch.linspace(-2, 2, 801)
+    losses = torch.stack([pinball(values - s, 0.1) for s in shifts])
+    assert float(shifts[losses.argmin()]) == pytest.approx(float(values.quantile(0.1)), abs=0.01)
+
+
+def fog(visibility_m: float, **options) -> FogAnalytic:
+    theta = theta_from_values(
+        0.0, visibility_m=visibility_m, fog_kind="fog", camera=CameraSpec.from_intrinsics(F, W, H)
+    )
+    scene = WeatherScene(cameras(), torch.tensor([0.0, -1.0, 0.0]), 1.0, None, seed=3)
+    return FogAnalytic(FogAnalyticConfig(airlight=AIRLIGHT, **options), theta, scene)
+
+
+def scene_view(seed: int = 0) -> tuple[torch.Tensor, RenderOutput]:
+    """A clear view as clear views are: texture whose every 7 px patch holds a near-black pixel in some channel, at
+    depths from 20 to 150 m, opaque -> (colour [H, W, 3], its render)."""
+    g = torch.Generator().manual_seed(seed)
+    colour = 0.2 + 0.8 * torch.rand(H, W, 3, generator=g)
+    colour[::5, ::5, 1] = 0.01 * torch.rand(colour[::5, ::5, 1].shape, generator=g)
+    depth = torch.linspace(20, 150, W).expand(H, W).clone()
+    out = RenderOutput(colour, torch.ones(H, W), depth, torch.zeros(0), torch.zeros(0, 2), 0, W, H)
+    return colour, out
+
+
+def test_dehazing_inverts_the_fog_where_the_surface_is_seen():
+    colour, out = scene_view()
+    medium = fog(300.0)
+    photo = medium.apply(colour, out, 0, RenderSettings()).detach()
+    dehazed, valid = medium.dehaze(photo, out, 0, min_transmission=0.05)
+    assert bool(valid.all())
+    assert torch.allclose(dehazed, colour, atol=1e-4)
+    out.alpha = torch.where(torch.arange(W) < W // 2, 1.0, 0.2).expand(H, W)  # the right half see-through
+    assert torch.equal(medium.dehaze(photo, out, 0, 0.05)[1], out.alpha > 0.5)
+    assert not bool(medium.dehaze(photo, out, 0, 0.99)[1].any())  # nothing is seen that clearly through the fog
+
+
+@pytest.mark.parametrize("start_visibility_m", [600.0, 120.0])
+def test_the_prior_finds_beta_from_foggy_photos_alone(start_visibility_m):
+    """Fog at 250 m over clear views; a medium started at half or twice that β learns it from the photos."""
+    truth = fog(250.0)
+    medium = fog(start_visibility_m)
+    views = [scene_view(seed) for seed in range(3)]
+    photos = [truth.apply(c, out, 0, RenderSettings()).detach() for c, out in views]
+    optimiser = torch.optim.Adam([medium.log_beta], lr=0.02)
+    config = DarkChannelPriorConfig(quantile=0.1, patch_px=7)
+    for step in range(300):
+        _, out = views[step % 3]
+        dehazed, valid = medium.dehaze(photos[step % 3], out, 0, config.min_transmission)
+        loss = dark_channel_loss(dehazed, valid, config)
+        optimiser.zero_grad()
+        loss.backward()
+        optimiser.step()
+    assert medium.airlight_logit.grad is None  # the airlight is the photos' to fit
+    assert torch.allclose(medium.beta_rgb.detach(), truth.beta_rgb, rtol=0.1)
+
+
+def test_patches_scale_the_optical_depth_cell_by_cell_and_their_prior_pulls_them_to_one():
+    medium = fog(300.0, patches=4)
+    assert medium.patch_log_scale.shape == (1, 4, 4) and not medium.patchy
+    _, out = scene_view()
+    plain = medium.optical_distance(out.depth, out.alpha, 0)
+    assert medium.learn_patches() and medium.patchy
+    assert torch.equal(medium.optical_distance(out.depth, out.alpha, 0), plain)  # they start at 1
+    with torch.no_grad():
+        medium.patch_log_scale[0] = torch.log(torch.tensor(2.0)) * (torch.arange(4) >= 2).float()  # right half x2
+    scaled = medium.optical_distance(out.depth, out.alpha, 0)
+    ratio = scaled / plain
+    assert torch.allclose(ratio[:, : W // 2 - 6], torch.ones(()), atol=1e-5)  # away from the bilinear seam
+    assert torch.allclose(ratio[:, W // 2 + 6 :], torch.full((), 2.0), atol=1e-5)
+    medium.use_record_prior = False
+    assert float(medium.prior(0).detach()) == pytest.approx(0.01 * 0.5 * float(torch.log(torch.tensor(2.0))) ** 2)
+    assert fog(300.0).prior(0) is None  # neither prior is on
