@@ -61,6 +61,8 @@ class MeteGSTrainer(Trainer):
         c = self.config
         has_clean = self.dataset.clean_images is not None
         self.use_clean = has_clean and c.clean_supervision
+        self.dehazing: list[WeatherModel] = []
+        """The media the dark-channel prior holds (`_decide_dark_channel`)."""
         self.weather_models: list[WeatherModel] = self._build_weather() if c.weather_branch else []
         if not c.weather_branch:
             self.decide("weather", "off (ablation): the scene alone fits the degraded photos")
@@ -91,7 +93,6 @@ class MeteGSTrainer(Trainer):
                 f"on from step {self.robust_from}: pixels {'brighter' if r.brighter_only else 'further'} than "
                 f"{r.k_sigma:g} robust sigmas of their view's residuals (grown by {r.dilate_px} px) are left out",
             )
-        self.dehazing = self._dehazing_media()
         self._feature_cache: dict[int, list[dict[str, torch.Tensor]]] = {}
         self._setup_extra_points()
         self.method_optimizers = self._method_optimizers()
@@ -143,29 +144,34 @@ class MeteGSTrainer(Trainer):
         return models
 
     def _decide_record_prior(self, name: str, fog: FogAnalytic) -> None:
-        """Whether ``fog``'s β is held near the record's: ``auto`` asks if the views see the scene's (initial)
-        points over distances far enough apart for the photos to measure β (`MEASURABLE_DISTANCE_SPREAD`)."""
+        """What sets ``fog``'s β where the photometric fit alone cannot: ``auto`` asks if the views see the scene's
+        (initial) points over distances far enough apart for the photos to measure β
+        (`MEASURABLE_DISTANCE_SPREAD`); where they are not, blind training holds it by the dark-channel prior
+        (`dark_channel`), training with clean references (or with that prior off) near the met record's."""
         from metegs.weather.medium import MEASURABLE_DISTANCE_SPREAD, distance_spread
 
         if not fog.log_beta.requires_grad:
             return
+        spread = distance_spread(self.dataset.cameras[self.dataset.train_indices], self.model.means.detach())
+        measurable = spread is not None and spread >= MEASURABLE_DISTANCE_SPREAD
+        seen = (
+            f"the views see a scene point from distances {'(unknown)' if spread is None else f'{spread:.2f}x'} apart "
+            f"(median){'' if measurable else f', under {MEASURABLE_DISTANCE_SPREAD}x'}"
+        )
+        dark = self._decide_dark_channel(fog, measurable, seen)
         mode, beta = fog.config.record_prior, f"{float(fog.record_log_beta.exp().mean()):.2e}/m"
-        if mode == "auto" and self._dark_channel_on():
-            fog.use_record_prior = False
-            why = "the dark channel prior measures β from the photos; the record's is where it starts"
-        elif mode == "auto":
-            spread = distance_spread(self.dataset.cameras[self.dataset.train_indices], self.model.means.detach())
-            fog.use_record_prior = spread is None or spread < MEASURABLE_DISTANCE_SPREAD
-            seen = "unknown" if spread is None else f"{spread:.2f}"
-            why = (
-                f"the views see a scene point from distances {seen}x apart (median), under "
-                f"{MEASURABLE_DISTANCE_SPREAD}x: the photos cannot tell fog from a hazy scene, so β stays near the "
-                f"record's {beta}"
-                if fog.use_record_prior
-                else f"the views see a scene point from distances {seen}x apart (median): the photos measure β"
-            )
-        else:
+        if mode != "auto":
+            fog.use_record_prior = mode == "on"
             why = f"--{name}.record-prior {mode}" + (f" (β near {beta})" if fog.use_record_prior else "")
+        elif dark:
+            fog.use_record_prior = False
+            why = f"the dark channel prior measures β; the record's {beta} is where it starts"
+        elif measurable:
+            fog.use_record_prior = False
+            why = f"{seen}: the photos measure β"
+        else:
+            fog.use_record_prior = True
+            why = f"{seen}: the photos cannot tell fog from a hazy scene, so β stays near the record's {beta}"
         weight = f" (weight {fog.config.record_prior_weight:g})" if fog.use_record_prior else ""
         self.decide(f"{name} prior", f"{'on' if fog.use_record_prior else 'off'}{weight}: {why}")
         if fog.use_record_prior:
@@ -178,29 +184,29 @@ class MeteGSTrainer(Trainer):
             g = fog.patch_log_scale.shape
             self.decide(f"{name} patches", f"on: per view, a {g[2]}x{g[1]} grid scales the optical depth")
 
-    def _dark_channel_on(self) -> bool:
-        """Whether the dark-channel prior holds the learnable media: blind training with a positive weight."""
-        return not self.use_clean and self.config.dark_channel.weight > 0
-
-    def _dehazing_media(self) -> list[WeatherModel]:
-        """The media the dark-channel prior holds (`dark_channel`): learnable ones, in blind mode only (clean
-        references measure β and A themselves)."""
+    def _decide_dark_channel(self, fog: FogAnalytic, measurable: bool, seen: str) -> bool:
+        """Whether the dark-channel prior holds ``fog`` (then it joins `dehazing`): blind training only, and with
+        ``mode`` auto only where the photos cannot measure β themselves (a scene without dark pixels, such as the
+        built-in one's grey ground, would bias a β they do measure)."""
         c = self.config.dark_channel
-        media = [m for m in self.weather_models if hasattr(m, "dehaze") and m.log_beta.requires_grad]
-        if not media:
-            return []
         if self.use_clean:
-            self.decide("dark channel prior", "off: the clean references measure the medium")
-            return []
-        if c.weight <= 0:
-            self.decide("dark channel prior", "off: weight 0")
-            return []
-        self.decide(
-            "dark channel prior",
-            f"on (weight {c.weight:g}): the photos dehazed by the medium keep {c.quantile:.0%} of their dark "
-            "channel at zero, as clear views do",
-        )
-        return media
+            on, why = False, "off: the clean references measure the medium"
+        elif c.weight <= 0 or c.mode == "off":
+            on, why = False, "off" + (": weight 0" if c.weight <= 0 else "")
+        elif c.mode == "on":
+            on, why = True, "on (--dark-channel.mode on)"
+        elif measurable:
+            on, why = False, f"off: {seen}: the photos measure β (--dark-channel.mode on adds it)"
+        else:
+            on, why = True, f"on: {seen}: the photos cannot tell fog from a hazy scene"
+        if on:
+            self.dehazing.append(fog)
+            why += (
+                f"; weight {c.weight:g}: the photos dehazed by the medium keep {c.quantile:.0%} of their dark channel "
+                "at zero, as clear views do"
+            )
+        self.decide("dark channel prior", why)
+        return on
 
     def _build_gtn(self):
         from metegs.models.gtn import GaussianTransformationNetwork

@@ -265,6 +265,14 @@ class Trainer:
             return self.scene.points, self.scene.point_colors
         if not mc.triangulate or self.scene.image_paths is None:
             return None
+        try:
+            import pycolmap  # noqa: F401 - triangulation's one dependency that a trimmed install may lack
+        except ImportError:
+            why = "pycolmap is not installed to triangulate points from the views (pip install pycolmap)"
+            self.decide("init", f"random Gaussians: {why}")
+            if self.console is not None:
+                self.console.print(f"[yellow]warning:[/] starting from random Gaussians: {why}")
+            return None
         from metegs.config import scene_cache
         from metegs.data.triangulate import CACHE_DIR, triangulate_known_poses
 

@@ -13,7 +13,7 @@ the 10 % quantile 0.000-0.029.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Annotated
+from typing import Annotated, Literal
 
 import torch
 import torch.nn.functional as F
@@ -28,6 +28,9 @@ PATCH_PX_AT_600 = 15
 class DarkChannelPriorConfig:
     """Dark-channel prior on the fog medium in blind training (no clean references to measure β and A)."""
 
+    mode: Literal["auto", "on", "off"] = "auto"
+    """auto: on where the photos cannot measure β themselves (every view sees the scene from about the same
+    distance); on: wherever training is blind."""
     weight: Annotated[float, NON_NEGATIVE] = 1.0
     """Weight of the prior in the weather branch's loss (0: off)."""
     quantile: Annotated[float, Range(0.0, 1.0)] = 0.1

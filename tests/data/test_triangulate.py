@@ -196,6 +196,20 @@ def test_trainer_falls_back_to_random_points_when_triangulation_fails(photograph
     assert trainer.random_init and "only 3 points" in trainer.decisions["init"]
 
 
+def test_trainer_without_pycolmap_starts_from_random_points_and_says_why(photographed, tmp_path, monkeypatch):
+    """A machine without pycolmap (a GPU image with only the training packages) trains from random points."""
+    import sys
+
+    from metegs.engine.config import TrainConfig
+
+    scene, paths = photographed
+    monkeypatch.setitem(sys.modules, "pycolmap", None)  # import pycolmap raises ImportError
+    trainer = TrainConfig(max_steps=1, progress=False, output_dir=tmp_path / "runs").setup(
+        scene=subset(scene, paths, source=None)
+    )
+    assert trainer.random_init and "pycolmap is not installed" in trainer.decisions["init"]
+
+
 def test_resuming_or_reopening_a_run_does_not_triangulate_again(photographed, tmp_path, fake_triangulation):
     from metegs.engine.config import TrainConfig
     from metegs.gaussians.ply import load_ply, save_ply

@@ -94,6 +94,14 @@ def test_fog_parameters_learned_from_their_theta_start(trained):
     assert saved["record_beta_per_m"] == pytest.approx(start.tolist(), rel=1e-4)
 
 
+def forward_facing(scene):
+    """``scene`` with every view turned like the first, side by side along its x axis (a forward-facing rig)."""
+    c2w = scene.cameras.camera_to_worlds.clone()
+    c2w[:, :3, :3] = c2w[0, :3, :3]
+    c2w[:, :3, 3] = c2w[0, :3, 3] + torch.linspace(-0.5, 0.5, len(c2w))[:, None] * c2w[0, :3, 0]
+    return replace(scene, cameras=replace(scene.cameras, camera_to_worlds=c2w))
+
+
 def test_fog_record_prior_is_on_where_the_views_see_the_scene_from_one_distance(tmp_path):
     """The built-in scene's views surround it (points seen from distances twice apart): the photos measure β. A
     forward-facing rig (all views side by side, looking the same way) cannot: β is held near the record's."""
@@ -106,25 +114,30 @@ def test_fog_record_prior_is_on_where_the_views_see_the_scene_from_one_distance(
     assert fog.height_rate.requires_grad
     learned = {id(p) for o in around.method_optimizers.values() for g in o.param_groups for p in g["params"]}
     assert id(fog.height_rate) in learned
-    c2w = around.scene.cameras.camera_to_worlds.clone()
-    c2w[:, :3, :3] = c2w[0, :3, :3]  # every view turned like the first, side by side along its x axis
-    c2w[:, :3, 3] = c2w[0, :3, 3] + torch.linspace(-0.5, 0.5, len(c2w))[:, None] * c2w[0, :3, 0]
-    rig = replace(around.scene, cameras=replace(around.scene.cameras, camera_to_worlds=c2w))
-    facing = tiny_metegs(tmp_path / "facing", conditions=conditions, max_steps=1).setup(scene=rig)
+    facing = tiny_metegs(tmp_path / "facing", conditions=conditions, max_steps=1).setup(
+        scene=forward_facing(around.scene)
+    )
     assert facing.decisions["fog-analytic prior"].startswith("on (weight 0.1)")
     fog = next(m for m in facing.weather_models if m.name == "fog-analytic")
     assert fog.use_record_prior and float(fog.prior(0).detach()) == 0.0
     assert facing.decisions["fog-analytic layers"].startswith("off:") and not fog.layered
 
 
-def test_blind_training_measures_the_fog_by_the_dark_channel_and_references_by_themselves(tmp_path):
-    """Blind, the dark-channel prior holds the medium (the record's β is where it starts, not a prior) and moves β
-    from the first step; with clean references, or at weight 0, the prior is off and the record prior decides."""
+def test_the_dark_channel_prior_holds_the_fog_where_blind_photos_cannot_measure_it(tmp_path):
+    """Blind on a forward-facing rig the dark-channel prior holds the medium (the record's β is where it starts, not a
+    prior) and moves β; where the views measure β (the built-in scene's surround), with clean references, or off, the
+    record prior decides as before."""
     from metegs.losses.dark_channel import DarkChannelPriorConfig
 
-    conditions = ConditionsConfig(precip_mm_h=0.0, visibility_m=300.0, metres_per_unit=100.0)
-    blind = tiny_metegs(tmp_path / "blind", conditions=conditions, max_steps=40, clean_supervision=False).setup()
-    assert blind.decisions["dark channel prior"].startswith("on (weight 1)")
+    conditions = ConditionsConfig(precip_mm_h=0.0, visibility_m=300.0, metres_per_unit=10.0)  # t ≈ 0.5 far
+    around = tiny_metegs(tmp_path / "around", conditions=conditions, max_steps=1, clean_supervision=False).setup()
+    assert around.dehazing == [] and around.decisions["dark channel prior"].startswith("off: the views see a scene")
+    assert around.decisions["fog-analytic prior"].startswith("off: the views see a scene point from distances")
+    rig = forward_facing(around.scene)
+    blind = tiny_metegs(tmp_path / "blind", conditions=conditions, max_steps=40, clean_supervision=False).setup(
+        scene=rig
+    )
+    assert blind.decisions["dark channel prior"].startswith("on: the views see a scene point")
     assert blind.decisions["fog-analytic prior"].startswith("off: the dark channel prior measures β")
     (fog,) = blind.dehazing
     assert fog.name == "fog-analytic" and not fog.use_record_prior
@@ -132,16 +145,22 @@ def test_blind_training_measures_the_fog_by_the_dark_channel_and_references_by_t
     # once the surfaces are opaque (the prior looks through rendered surfaces only), β moves by it
     held = [blind.train_step(i).get("dark_channel", 0.0) for i in blind.dataset.train_indices * 3]
     assert max(held) > 0.0 and not torch.equal(fog.log_beta.detach(), start)
-    referenced = tiny_metegs(tmp_path / "refs", conditions=conditions, max_steps=1).setup()
-    assert referenced.dehazing == [] and referenced.decisions["dark channel prior"].startswith("off: the clean")
-    off = tiny_metegs(
-        tmp_path / "off",
+    forced = tiny_metegs(
+        tmp_path / "forced",
         conditions=conditions,
         max_steps=1,
         clean_supervision=False,
-        dark_channel=DarkChannelPriorConfig(weight=0.0),
+        dark_channel=DarkChannelPriorConfig(mode="on"),
     ).setup()
-    assert off.dehazing == [] and off.decisions["fog-analytic prior"].startswith("off: the views see a scene point")
+    assert len(forced.dehazing) == 1 and forced.decisions["dark channel prior"].startswith(
+        "on (--dark-channel.mode on)"
+    )
+    for name, options in (
+        ("refs", {}),
+        ("off", {"clean_supervision": False, "dark_channel": DarkChannelPriorConfig(weight=0.0)}),
+    ):
+        other = tiny_metegs(tmp_path / name, conditions=conditions, max_steps=1, **options).setup(scene=rig)
+        assert other.dehazing == [] and other.decisions["fog-analytic prior"].startswith("on (weight 0.1)")
 
 
 def test_clean_views_look_into_the_airlight_where_the_scene_is_transparent(trained):
