@@ -23,6 +23,9 @@ from metegs.validate import NON_NEGATIVE, Range
 PATCH_PX_AT_600 = 15
 """He et al.'s patch: 15 px at images of about 600 px; scaled with the image."""
 
+SAMPLED_SIDE_PX = 320
+"""Longer side, in pixels, near which the prior samples a view (`sample_stride`)."""
+
 
 @dataclass
 class DarkChannelPriorConfig:
@@ -47,10 +50,23 @@ def patch_size(height: int, width: int, patch_px: int = 0) -> int:
     return max(3, size | 1)
 
 
+def window_min(values: torch.Tensor, patch: int) -> torch.Tensor:
+    """The smallest of ``values`` [H, W] over a ``patch``×``patch`` window (odd) around each pixel -> [H, W]; by rows
+    then columns (2·patch comparisons a pixel instead of patch²)."""
+    x = -values[None, None]
+    x = F.max_pool2d(x, (patch, 1), stride=1, padding=(patch // 2, 0))
+    return -F.max_pool2d(x, (1, patch), stride=1, padding=(0, patch // 2))[0, 0]
+
+
 def dark_channel(image: torch.Tensor, patch: int) -> torch.Tensor:
     """The smallest value over the channels and a ``patch``×``patch`` window (odd). image [H, W, C] -> [H, W]."""
-    darkest = image.amin(-1)[None, None]
-    return -F.max_pool2d(-darkest, patch, stride=1, padding=patch // 2)[0, 0]
+    return window_min(image.amin(-1), patch)
+
+
+def sample_stride(height: int, width: int) -> int:
+    """Every how many pixels the prior looks: it sets one level, which a quarter of a 500 px view measures as well
+    (1 up to 480 px on the longer side, 2 up to 800 px, ...)."""
+    return max(1, round(max(height, width) / SAMPLED_SIDE_PX))
 
 
 def pinball(values: torch.Tensor, quantile: float) -> torch.Tensor:
@@ -60,13 +76,16 @@ def pinball(values: torch.Tensor, quantile: float) -> torch.Tensor:
 
 def dark_channel_loss(dehazed: torch.Tensor, valid: torch.Tensor, config: DarkChannelPriorConfig) -> torch.Tensor:
     """Pinball loss holding ``config.quantile`` of the dark channel of ``dehazed`` [H, W, 3] at zero over the
-    ``valid`` [H, W] bool pixels (a patch touching an invalid pixel is left out) -> scalar (0 when none is valid)."""
+    ``valid`` [H, W] bool pixels (a patch touching an invalid pixel is left out; every `sample_stride`-th pixel of
+    large views) -> scalar (0 when none is valid)."""
+    step = sample_stride(*valid.shape)
+    dehazed, valid = dehazed[::step, ::step], valid[::step, ::step]
     h, w = valid.shape
     patch = patch_size(h, w, config.patch_px)
     # an invalid pixel must not be a patch's minimum: lift it above every value before the min-pool
     lifted = torch.where(valid[..., None], dehazed, dehazed.detach().amax() + 1.0)
     dark = dark_channel(lifted, patch)
-    whole = -F.max_pool2d(-valid[None, None].float(), patch, stride=1, padding=patch // 2)[0, 0] > 0.5
+    whole = window_min(valid.float(), patch) > 0.5
     if not bool(whole.any()):
         return dehazed.sum() * 0.0
     return pinball(dark[whole], config.quantile)

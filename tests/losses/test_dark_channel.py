@@ -4,7 +4,14 @@ the fog it inverts, and β recovered from foggy photos alone."""
 import pytest
 import torch
 
-from metegs.losses.dark_channel import DarkChannelPriorConfig, dark_channel, dark_channel_loss, patch_size, pinball
+from metegs.losses.dark_channel import (
+    DarkChannelPriorConfig,
+    dark_channel,
+    dark_channel_loss,
+    patch_size,
+    pinball,
+    sample_stride,
+)
 from metegs.meteo import CameraSpec, theta_from_values
 from metegs.render.base import RenderOutput, RenderSettings
 from metegs.weather import WeatherScene
@@ -26,6 +33,7 @@ def test_dark_channel_is_the_min_over_channels_and_patch():
 def test_patch_follows_the_image_size_and_stays_odd():
     assert patch_size(400, 600) == 15 and patch_size(250, 250) == 7 and patch_size(20, 30) == 3
     assert patch_size(100, 100, patch_px=8) == 9
+    assert (sample_stride(250, 250), sample_stride(500, 500), sample_stride(660, 1000)) == (1, 2, 3)
 
 
 def test_pinball_is_minimised_at_the_quantile():
