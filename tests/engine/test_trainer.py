@@ -68,7 +68,7 @@ def test_run_folder_contents(trained):
 def test_training_improves_over_initialisation(trained):
     trainer, metrics = trained
     assert metrics["psnr"] > trainer.initial_psnr + 1.5  # measured: 9.7 -> 11.7 (cpu) and 11.9 dB (torch)
-    assert len(trainer.model) == 2000  # grew to the budget, not beyond
+    assert 1800 < len(trainer.model) <= 2000  # grew to the budget (the 0.1 opacity cull then takes ~3 %), not beyond
 
 
 def test_scene_ply_reimports_to_identical_renders(trained):
