@@ -15,16 +15,16 @@ mkdir -p "$OUT"
 T0=$(date +%s)
 SUMMARY=()
 
-if ls .whl/*.whl >/dev/null 2>&1; then
-    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
+if ls .whl/*.whl >/dev/null 2>&1; then  # once per machine: reinstalling renews gsplat's sources, which rebuilds it
+    [ -d /tmp/site/gsplat ] || python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
         || { echo "wheel install failed"; exit 1; }
     export PYTHONPATH=/tmp/site:$PWD
 else
     export PYTHONPATH=$PWD
 fi
-export PYTHONUNBUFFERED=1 MAX_JOBS=$(nproc) TORCH_EXTENSIONS_DIR=$PWD/.gpu/torch_extensions
+export PYTHONUNBUFFERED=1 MAX_JOBS=$(nproc) TORCH_EXTENSIONS_DIR=/tmp/torch_ext  # shared with gpu_real.sh
 export TORCH_CUDA_ARCH_LIST=$(python3 -c "import torch; print('%d.%d' % torch.cuda.get_device_capability())" 2>/dev/null)
-export PY=python3
+export PY=python3 COLUMNS=160  # rich tables whole in the logs
 
 stage() {  # stage NAME LIMIT_S COMMAND...
     local name=$1 limit=$2 left start rc

@@ -1,10 +1,10 @@
 """Stage configs/bench/real.yaml's captures for a lent GPU machine, which has no pycolmap and reaches nothing outside.
 
-Writes into .gpu/ (ignored by git; carry it with the run): the Ethiopian head as it is, the instant-ngp fox and the
-Lund street as nerfstudio ``transforms.json`` scenes at half their size (the training size is the same: both train at
-their power-of-two downscale under 640 px), Lund converted from its COLMAP model with its world turned so that metegs's
-own up estimate is +Z (nerfstudio's convention; a COLMAP world kept as it is puts height fog along the street), the
-two met records, and ``real-gpu.yaml``: real.yaml's grid on CUDA without the rows the GPU image cannot run (the 2D
+Writes into .gpu/ (ignored by git; carry it with the run): the Ethiopian head (LLFF), the instant-ngp fox (undistorted
+here) and the Lund street (COLMAP) as nerfstudio ``transforms.json`` scenes with their own train/test split, the fox
+and Lund at half their size (the training size is the same: both train at their power-of-two downscale under 640 px),
+each world turned so that metegs's own up estimate is +Z, sparse points triangulated here where the capture has none
+(so the GPU runs start from the same kind of points as the CPU runs), the two met records, and ``real-gpu.yaml``: real.yaml's grid on CUDA without the rows the GPU image cannot run (the 2D
 restoration needs OpenCV's contrib module), plus the ablation without the dark-channel prior. Then, on the machine,
 ``bash benchmarks/gpu_real.sh`` runs it.
 
@@ -30,24 +30,6 @@ RECORDS = (
 )
 
 
-def halve(src: Path, dst: Path, meta: dict, frames: list[dict]) -> dict:
-    """Write each frame's photo at half size into ``dst/images``; ``meta`` with the intrinsics scaled to it."""
-    w, h = int(meta["w"]), int(meta["h"])
-    nw, nh = round(w / 2), round(h / 2)
-    (dst / "images").mkdir(parents=True, exist_ok=True)
-    kept = []
-    for frame in frames:
-        path = src / frame["file_path"]
-        if not path.is_file():  # instant-ngp's fox lists photos it does not ship
-            continue
-        Image.open(path).convert("RGB").resize((nw, nh), Image.LANCZOS).save(dst / "images" / path.name, quality=95)
-        kept.append({**frame, "file_path": f"images/{path.name}"})
-    sx, sy = nw / w, nh / h
-    out = {k: v for k, v in meta.items() if k not in ("camera_angle_x", "camera_angle_y", "frames")}
-    out.update(w=nw, h=nh, fl_x=meta["fl_x"] * sx, fl_y=meta["fl_y"] * sy, cx=meta["cx"] * sx, cy=meta["cy"] * sy)
-    return {**out, "frames": kept}
-
-
 def turn_up_to_z(up: np.ndarray) -> np.ndarray:
     """[3, 3] rotation taking the unit vector ``up`` to +Z (Rodrigues)."""
     up = up / np.linalg.norm(up)
@@ -59,40 +41,55 @@ def turn_up_to_z(up: np.ndarray) -> np.ndarray:
     return np.eye(3) + k + k @ k / (1.0 + c)
 
 
-def stage_lund(src: Path, dst: Path) -> None:
+def stage_scene(src: Path, dst: Path, shrink: int) -> None:
+    """``src`` (any format metegs reads, undistorted by its parser) as a nerfstudio scene in ``dst``: photos (and
+    masks) ``shrink`` times smaller, the world turned so metegs's up estimate is +Z (nerfstudio's convention; a
+    COLMAP or LLFF world kept as it is puts height fog along the street), the same train/test split, and sparse
+    points: the scene's, else triangulated here from the staged training views (the GPU image has no pycolmap)."""
     from metegs.data.config import DatasetConfig
     from metegs.data.parsers.base import parse_scene
+    from metegs.data.triangulate import triangulate_known_poses
+    from metegs.synth.writers import write_ply_points
 
     scene = parse_scene(src, None, DatasetConfig(downscale=1))
     turn = turn_up_to_z(np.asarray(scene.up, dtype=np.float64))
+    cam = scene.cameras
+    (dst / "images").mkdir(parents=True)
     frames = []
-    for name, c2w in zip(scene.names, scene.cameras.camera_to_worlds.double().numpy()):
+    for i, (name, c2w) in enumerate(zip(scene.names, cam.camera_to_worlds.double().numpy(), strict=True)):
+        w, h = round(int(cam.width[i]) / shrink), round(int(cam.height[i]) / shrink)
+        sx, sy = w / int(cam.width[i]), h / int(cam.height[i])
+        file = f"images/{i:03d}_{Path(name).stem}.jpg"  # JPEG: the staged copy must travel (64 MiB)
+        Image.open(scene.image_paths[i]).convert("RGB").resize((w, h), Image.LANCZOS).save(dst / file, quality=95)
         gl = np.eye(4)
         gl[:3, :3] = turn @ c2w[:3, :3] @ np.diag([1.0, -1.0, -1.0])  # OpenCV -> OpenGL camera axes
         gl[:3, 3] = turn @ c2w[:3, 3]
-        frames.append({"file_path": f"images/{Path(name).name}", "transform_matrix": gl.tolist()})
-    cam = scene.cameras
+        frame = {"file_path": file, "transform_matrix": gl.tolist(), "w": w, "h": h}
+        frame.update(fl_x=float(cam.fx[i]) * sx, fl_y=float(cam.fy[i]) * sy)
+        frame.update(cx=float(cam.cx[i]) * sx, cy=float(cam.cy[i]) * sy)
+        if scene.mask_paths is not None:
+            mask = f"masks/{i:03d}_{Path(name).stem}.png"
+            (dst / "masks").mkdir(exist_ok=True)
+            Image.open(scene.mask_paths[i]).convert("L").resize((w, h), Image.NEAREST).save(dst / mask)
+            frame["mask_path"] = mask
+        frames.append(frame)
     meta = {
         "camera_model": "PINHOLE",
-        **{k: float(getattr(cam, k)[0]) for k in ("fx", "fy", "cx", "cy")},
-        "w": int(cam.width[0]),
-        "h": int(cam.height[0]),
+        "frames": frames,
+        "train_filenames": [frames[i]["file_path"] for i in scene.train_indices],
+        "test_filenames": [frames[i]["file_path"] for i in scene.test_indices],
     }
-    meta = {"fl_x": meta.pop("fx"), "fl_y": meta.pop("fy"), **meta}
-    staged = halve(src, dst, {**meta, "ply_file_path": "sparse_pc.ply"}, frames)
-    (dst / "transforms.json").write_text(json.dumps(staged, indent=1))
-    points = np.asarray(scene.points, dtype=np.float64) @ turn.T
-    colours = np.clip(np.asarray(scene.point_colors) * (255.0 if np.max(scene.point_colors) <= 1.0 else 1.0), 0, 255)
-    vertex = np.zeros(
-        len(points), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("r", "u1"), ("g", "u1"), ("b", "u1")]
-    )
-    vertex["x"], vertex["y"], vertex["z"] = points.T
-    vertex["r"], vertex["g"], vertex["b"] = colours.astype(np.uint8).T
-    header = (
-        f"ply\nformat binary_little_endian 1.0\nelement vertex {len(points)}\nproperty float x\nproperty float y\n"
-        "property float z\nproperty uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n"
-    )
-    (dst / "sparse_pc.ply").write_bytes(header.encode() + vertex.tobytes())
+    if scene.points is not None and len(scene.points):
+        points, colours = np.asarray(scene.points, dtype=np.float64) @ turn.T, scene.point_colors
+    else:
+        (dst / "transforms.json").write_text(json.dumps(meta, indent=1))
+        staged = parse_scene(dst, None, DatasetConfig(downscale=1))
+        train = staged.train_indices
+        found = triangulate_known_poses([staged.image_paths[i] for i in train], staged.cameras[train], None)
+        points, colours = found.points, found.colors
+        print(f"{dst.name}: {len(points)} points triangulated from {found.num_views} training views")
+    write_ply_points(dst / "sparse_pc.ply", points, colours)
+    (dst / "transforms.json").write_text(json.dumps({**meta, "ply_file_path": "sparse_pc.ply"}, indent=1))
 
 
 def grid_config(real: dict) -> dict:
@@ -120,6 +117,8 @@ def grid_config(real: dict) -> dict:
         "label": "MeteGS (blind) without the dark-channel prior",
         "overrides": {**blind["overrides"], "dark_channel": {"mode": "off"}},
     }
+    first = ("3dgs-clean", "3dgs", "metegs-blind")  # a suite process runs its rows in this order: cheap, then key
+    methods.sort(key=lambda m: first.index(m["name"]) if m["name"] in first else len(first))
     config["methods"] = [*methods, ablation]
     config.pop("checks", None)
     return config
@@ -133,16 +132,18 @@ def main() -> None:
     args = parser.parse_args()
     data = args.out / "data"
     shutil.rmtree(data, ignore_errors=True)
-    shutil.copytree(args.shared / "data/scenes/ethiopianhead-llff", data / "ethiopianhead-llff")
-    fox = args.captures / "fox-instant-ngp/data/nerf/fox"
-    meta = json.loads((fox / "transforms.json").read_text())
-    (data / "fox").mkdir(parents=True)
-    (data / "fox/transforms.json").write_text(json.dumps(halve(fox, data / "fox", meta, meta["frames"]), indent=1))
-    stage_lund(args.captures / "opensfm-lund/scene", data / "lund")
-    for folder, capture in (("fox", "fox-instant-ngp"), ("lund", "opensfm-lund")):
-        for note in ("SOURCE.txt", "LICENSE.txt", "LICENSE"):
-            if (args.captures / capture / note).is_file():
-                shutil.copy(args.captures / capture / note, data / folder)
+    captures = {
+        "ethiopianhead-llff": (args.shared / "data/scenes/ethiopianhead-llff", 1),
+        "fox": (args.captures / "fox-instant-ngp/data/nerf/fox", 2),
+        "lund": (args.captures / "opensfm-lund/scene", 2),
+    }
+    for folder, (src, shrink) in captures.items():
+        stage_scene(src, data / folder, shrink)
+        for note in ("SOURCE.txt", "SOURCE.md", "LICENSE.txt", "LICENSE.md", "LICENSE"):
+            for where in (src, *src.parents[:3]):
+                if (where / note).is_file():
+                    shutil.copy(where / note, data / folder)
+                    break
     for record in RECORDS:
         (args.out / record).parent.mkdir(parents=True, exist_ok=True)
         shutil.copy(args.shared / "data" / record, args.out / record)

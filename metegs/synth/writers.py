@@ -5,7 +5,7 @@ Layouts (the clean reference of ``<folder>/<file>`` is ``<folder>_clean/<file>``
 
 - ``llff``: ``poses_bounds.npy``, the image folder the parser read (e.g. ``images_8/``) with the degraded
   images under their own names, its masks folder, the top-level files (licence, readme) copied;
-- ``nerfstudio`` / ``blender``: the transforms file(s) and point cloud copied, degraded images at the
+- ``nerfstudio`` / ``blender``: the transforms file(s), point cloud and frames' masks copied, degraded images at the
   frames' paths;
 - ``colmap``: the ``sparse/`` model copied, degraded images in ``images/``;
 - the synthetic scene (in memory): a nerfstudio dataset, ``transforms.json`` (its split, the points in
@@ -145,10 +145,11 @@ class DatasetWriter:
             meta = json.loads(
                 (self.scene.source if Path(self.scene.source).is_file() else src / "transforms.json").read_text()
             )
-            ply = meta.get("ply_file_path")
-            if ply and (src / ply).is_file() and not (self.root / ply).exists():
-                (self.root / ply).parent.mkdir(parents=True, exist_ok=True)
-                shutil.copy2(src / ply, self.root / ply)
+            masks = [f.get("mask_path") for f in meta.get("frames", []) if isinstance(f, dict)]
+            for rel in [meta.get("ply_file_path"), *masks]:  # the points and each frame's mask, where they exist
+                if isinstance(rel, str) and rel and (src / rel).is_file() and not (self.root / rel).exists():
+                    (self.root / rel).parent.mkdir(parents=True, exist_ok=True)
+                    shutil.copy2(src / rel, self.root / rel)
 
     def _write_nerfstudio_from_memory(self, depths: list[np.ndarray] | None) -> None:
         scene = self.scene

@@ -190,6 +190,47 @@ def test_llff_needs_depth_and_is_written_as_llff(tmp_path):
     np.testing.assert_allclose(back.cameras.camera_to_worlds, scene.cameras.camera_to_worlds)
 
 
+def test_a_nerfstudio_copy_keeps_its_masks_and_points(tmp_path):
+    """The degraded copy of a nerfstudio scene reads back with each frame's mask and the point cloud."""
+    from metegs.files import staged_output
+    from metegs.meteo import theta_from_values
+    from metegs.synth.writers import DatasetWriter, write_ply_points
+    from metegs.weather.conditions import camera_spec
+    from metegs.weather.degrade import degrade_scene
+
+    src = tmp_path / "scene"
+    (src / "images").mkdir(parents=True)
+    (src / "masks").mkdir()
+    rng = np.random.default_rng(0)
+    frames = []
+    for i in range(3):
+        cv2.imwrite(str(src / "images" / f"im_{i}.jpg"), rng.integers(0, 255, (36, 48, 3), dtype=np.uint8))
+        cv2.imwrite(str(src / "masks" / f"im_{i}.png"), np.full((36, 48), 255, np.uint8))
+        c2w = np.eye(4)
+        c2w[:3, 3] = [0.2 * i, 0.0, 4.0]
+        frames.append(
+            {"file_path": f"images/im_{i}.jpg", "mask_path": f"masks/im_{i}.png", "transform_matrix": c2w.tolist()}
+        )
+    write_ply_points(src / "points.ply", rng.normal(size=(20, 3)), rng.uniform(size=(20, 3)))
+    meta = {"frames": frames, "fl_x": 40.0, "fl_y": 40.0, "cx": 24.0, "cy": 18.0, "w": 48, "h": 36}
+    (src / "transforms.json").write_text(json.dumps({**meta, "ply_file_path": "points.ply"}))
+    scene = parse_scene(src, None, DatasetConfig())
+    assert scene.mask_paths is not None
+    theta = theta_from_values(
+        30.0, visibility_m=50.0, fog_kind="fog", camera=camera_spec(scene.cameras, capture_width_px=0, far_m=5.0)
+    )
+    rainy, _ = degrade_scene(scene, theta, depths=[np.full((36, 48), 4.0, np.float32)] * 3, metres_per_unit=1.0)
+    with staged_output(tmp_path / "out") as tmp:
+        w = DatasetWriter(scene, tmp)
+        for i in range(3):
+            w.write_view(i, rainy.images[i], rainy.clean_images[i])
+        w.finish()
+    back = parse_scene(tmp_path / "out", None, DatasetConfig())
+    assert back.mask_paths is not None and [p.name for p in back.mask_paths] == [p.name for p in scene.mask_paths]
+    assert all(b.read_bytes() == s.read_bytes() for b, s in zip(back.mask_paths, scene.mask_paths))
+    np.testing.assert_allclose(back.points, scene.points)
+
+
 def test_synthetic_copy_reads_back_with_its_scale_exposure_and_up(storm):
     import torch
 
