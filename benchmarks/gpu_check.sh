@@ -61,11 +61,11 @@ import time; t = time.time()
 from metegs.render.gsplat_backend import load_gsplat
 g = load_gsplat(); print('gsplat', g.__version__, 'built and smoke-tested in %.0f s' % (time.time() - t))"
 stage tests 90 $PY -m pytest -q -p no:cacheprovider tests/render/test_gsplat_backend.py
-stage raster 90 cli bench raster --device cuda
+stage raster 90 cli bench raster --device cuda --output "$OUT/raster.json"  # the figures, whatever the log width
 stage train 240 cli train metegs-full --experiment-name gpu-check
 RUN=$(ls -td outputs/*/*/*/ 2>/dev/null | head -n 1)
 [ -n "$RUN" ] && find "$RUN" \( -name '*.json' -o -name '*.yml' \) -print0 | tar -czf "$OUT/train-run.tgz" --null -T -
-stage step 150 cli bench step --device cuda
+stage step 150 cli bench step --device cuda --output "$OUT/step.json"
 stage suite 300 $PY -m pytest -q -p no:cacheprovider -n "$(nproc)" -m "not data"
 
 echo "== summary ($(($(date +%s) - T0)) s)"

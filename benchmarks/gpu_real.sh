@@ -4,7 +4,8 @@
 # (no PLY, no checkpoints) and the logs are tarred into $OUT. Stage the captures first, here:
 #   python benchmarks/stage_gpu_captures.py      # writes .gpu/ (carry .gpu and .whl)
 # then on the machine: DEADLINE_S=550 bash benchmarks/gpu_real.sh
-# JOBS (4) suite processes share the GPU. Local dry test: DEVICE=cpu STEPS=10 SCENES=lund CONDS=fog-200-ind PY=python bash benchmarks/gpu_real.sh
+# JOBS (4) suite processes share the GPU. Local dry test:
+#   DEVICE=cpu STEPS=10 SCENES=lund CONDS=fog-200-ind PY=python bash benchmarks/gpu_real.sh
 set -u
 OUT=${OUT:-/tmp/gpu-out}; mkdir -p "$OUT"
 T0=$(date +%s); DEADLINE_S=${DEADLINE_S:-545}

@@ -4,9 +4,9 @@ Writes into .gpu/ (ignored by git; carry it with the run): the Ethiopian head (L
 here) and the Lund street (COLMAP) as nerfstudio ``transforms.json`` scenes with their own train/test split, the fox
 and Lund at half their size (the training size is the same: both train at their power-of-two downscale under 640 px),
 each world turned so that metegs's own up estimate is +Z, sparse points triangulated here where the capture has none
-(so the GPU runs start from the same kind of points as the CPU runs), the two met records, and ``real-gpu.yaml``: real.yaml's grid on CUDA without the rows the GPU image cannot run (the 2D
-restoration needs OpenCV's contrib module), plus the ablation without the dark-channel prior. Then, on the machine,
-``bash benchmarks/gpu_real.sh`` runs it.
+(so the GPU runs start from the same kind of points as the CPU runs), the two met records, and ``real-gpu.yaml``:
+real.yaml's grid on CUDA without the rows the GPU image cannot run (the 2D restoration needs OpenCV's contrib module),
+plus the ablation without the dark-channel prior. Then, on the machine, ``bash benchmarks/gpu_real.sh`` runs it.
 
     python benchmarks/stage_gpu_captures.py        # reads $METEGS_CAPTURES and ../shared
 """
