@@ -12,7 +12,7 @@ Layouts (the clean reference of ``<folder>/<file>`` is ``<folder>_clean/<file>``
   ``points.ply``), ``images/view_NNN.png``, exact depth maps ``depths/view_NNN.npy`` (float32 z-depth, m);
 - a scene whose photos metegs read through undistorted copies (COLMAP or nerfstudio frames with lens
   distortion): the same PINHOLE nerfstudio layout, as the views were trained on (undistorted PNGs, the
-  undistorted cameras), since a mirror of the distorted originals would need the weather distorted too.
+  undistorted cameras and masks), since a mirror of the distorted originals would need the weather distorted too.
 
 Everything is built in a hidden temp folder next to the output and renamed into place at the end: an
 interrupted run leaves no half-written dataset.
@@ -173,6 +173,12 @@ class DatasetWriter:
                 path.parent.mkdir(parents=True, exist_ok=True)
                 np.save(path, np.asarray(depths[i], dtype=np.float32), allow_pickle=False)
                 frame["depth_file_path"] = rel
+            if scene.mask_paths is not None:  # the (undistorted) masks beside the views they belong to
+                src = Path(scene.mask_paths[i])
+                rel = f"masks/{Path(self.image_rel[i]).stem}{src.suffix}"
+                (self.root / "masks").mkdir(exist_ok=True)
+                shutil.copy2(src, self.root / rel)
+                frame["mask_path"] = rel
             frames.append(frame)
         meta = {
             "camera_model": "PINHOLE",

@@ -253,13 +253,17 @@ def test_a_distorted_capture_is_degraded_as_the_pinhole_views_it_trains_on(tmp_p
 
     src = tmp_path / "scene"
     (src / "images").mkdir(parents=True)
+    (src / "masks").mkdir()
     rng = np.random.default_rng(0)
     frames = []
     for i in range(3):
         cv2.imwrite(str(src / "images" / f"im_{i}.jpg"), rng.integers(0, 255, (36, 48, 3), dtype=np.uint8))
+        cv2.imwrite(str(src / "masks" / f"im_{i}.png"), np.full((36, 48), 255, np.uint8))
         c2w = np.eye(4)
         c2w[:3, 3] = [0.2 * i, 0.0, 4.0]  # OpenGL: looking down -z at the origin
-        frames.append({"file_path": f"images/im_{i}.jpg", "transform_matrix": c2w.tolist()})
+        frames.append(
+            {"file_path": f"images/im_{i}.jpg", "mask_path": f"masks/im_{i}.png", "transform_matrix": c2w.tolist()}
+        )
     meta = {"frames": frames, "fl_x": 40.0, "fl_y": 40.0, "cx": 24.0, "cy": 18.0, "w": 48, "h": 36, "k1": -0.2}
     (src / "transforms.json").write_text(json.dumps(meta))
     scene = parse_scene(src, None, DatasetConfig())
@@ -280,6 +284,8 @@ def test_a_distorted_capture_is_degraded_as_the_pinhole_views_it_trains_on(tmp_p
     assert "undistorted" in written["metegs"]["source"]
     back = parse_scene(out, None, DatasetConfig())
     assert back.parser == "nerfstudio" and not reads_cached_copies(back)
+    assert back.mask_paths is not None  # the undistorted masks travel with their views
+    assert all(b.read_bytes() == s.read_bytes() for b, s in zip(back.mask_paths, scene.mask_paths))
     for field in ("fx", "fy", "cx", "cy"):
         torch.testing.assert_close(getattr(back.cameras, field), getattr(scene.cameras, field))
     torch.testing.assert_close(back.cameras.camera_to_worlds, scene.cameras.camera_to_worlds)
