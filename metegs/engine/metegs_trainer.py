@@ -201,9 +201,12 @@ class MeteGSTrainer(Trainer):
             on, why = True, f"on: {seen}: the photos cannot tell fog from a hazy scene"
         if on:
             self.dehazing.append(fog)
+            # as He et al. estimate A once: a free A drifts down while a pale scene takes the haze in (head, fog)
+            fog.airlight_logit.requires_grad_(False)
+            airlight = ", ".join(f"{float(a):.2f}" for a in fog.airlight)
             why += (
                 f"; weight {c.weight:g}: the photos dehazed by the medium keep {c.quantile:.0%} of their dark channel "
-                "at zero, as clear views do"
+                f"at zero, as clear views do, under the airlight estimated at the start ({airlight}), held"
             )
         self.decide("dark channel prior", why)
         return on

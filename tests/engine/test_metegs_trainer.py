@@ -141,10 +141,17 @@ def test_the_dark_channel_prior_holds_the_fog_where_blind_photos_cannot_measure_
     assert blind.decisions["fog-analytic prior"].startswith("off: the dark channel prior measures β")
     (fog,) = blind.dehazing
     assert fog.name == "fog-analytic" and not fog.use_record_prior
-    start = fog.log_beta.detach().clone()
+    start, airlight = fog.log_beta.detach().clone(), fog.airlight.detach().clone()
     # once the surfaces are opaque (the prior looks through rendered surfaces only), β moves by it
     held = [blind.train_step(i).get("dark_channel", 0.0) for i in blind.dataset.train_indices * 3]
     assert max(held) > 0.0 and not torch.equal(fog.log_beta.detach(), start)
+    # the airlight stays at its estimate (a free one drifts down while a pale scene takes the haze in)
+    assert (
+        torch.equal(fog.airlight.detach(), airlight)
+        and "airlight estimated at the start" in blind.decisions["dark channel prior"]
+    )
+    free = next(m for m in around.weather_models if m.name == "fog-analytic")
+    assert free.airlight_logit.requires_grad  # where the photos measure the medium, the airlight learns
     forced = tiny_metegs(
         tmp_path / "forced",
         conditions=conditions,
