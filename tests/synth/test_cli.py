@@ -190,15 +190,9 @@ def test_llff_needs_depth_and_is_written_as_llff(tmp_path):
     np.testing.assert_allclose(back.cameras.camera_to_worlds, scene.cameras.camera_to_worlds)
 
 
-def test_a_nerfstudio_copy_keeps_its_masks_and_points(tmp_path):
-    """The degraded copy of a nerfstudio scene reads back with each frame's mask and the point cloud."""
-    from metegs.files import staged_output
-    from metegs.meteo import theta_from_values
-    from metegs.synth.writers import DatasetWriter, write_ply_points
-    from metegs.weather.conditions import camera_spec
-    from metegs.weather.degrade import degrade_scene
-
-    src = tmp_path / "scene"
+def write_masked_nerfstudio(src: Path, **top_level) -> None:
+    """Three random 48x36 views looking down -z at the origin (OpenGL), each with an all-white mask, as a nerfstudio
+    scene in ``src``; ``top_level`` adds keys to its transforms.json (a lens distortion, a point cloud file)."""
     (src / "images").mkdir(parents=True)
     (src / "masks").mkdir()
     rng = np.random.default_rng(0)
@@ -211,9 +205,22 @@ def test_a_nerfstudio_copy_keeps_its_masks_and_points(tmp_path):
         frames.append(
             {"file_path": f"images/im_{i}.jpg", "mask_path": f"masks/im_{i}.png", "transform_matrix": c2w.tolist()}
         )
-    write_ply_points(src / "points.ply", rng.normal(size=(20, 3)), rng.uniform(size=(20, 3)))
     meta = {"frames": frames, "fl_x": 40.0, "fl_y": 40.0, "cx": 24.0, "cy": 18.0, "w": 48, "h": 36}
-    (src / "transforms.json").write_text(json.dumps({**meta, "ply_file_path": "points.ply"}))
+    (src / "transforms.json").write_text(json.dumps({**meta, **top_level}))
+
+
+def test_a_nerfstudio_copy_keeps_its_masks_and_points(tmp_path):
+    """The degraded copy of a nerfstudio scene reads back with each frame's mask and the point cloud."""
+    from metegs.files import staged_output
+    from metegs.meteo import theta_from_values
+    from metegs.synth.writers import DatasetWriter, write_ply_points
+    from metegs.weather.conditions import camera_spec
+    from metegs.weather.degrade import degrade_scene
+
+    src = tmp_path / "scene"
+    write_masked_nerfstudio(src, ply_file_path="points.ply")
+    rng = np.random.default_rng(1)
+    write_ply_points(src / "points.ply", rng.normal(size=(20, 3)), rng.uniform(size=(20, 3)))
     scene = parse_scene(src, None, DatasetConfig())
     assert scene.mask_paths is not None
     theta = theta_from_values(
@@ -252,20 +259,7 @@ def test_a_distorted_capture_is_degraded_as_the_pinhole_views_it_trains_on(tmp_p
     from metegs.weather.degrade import degrade_scene
 
     src = tmp_path / "scene"
-    (src / "images").mkdir(parents=True)
-    (src / "masks").mkdir()
-    rng = np.random.default_rng(0)
-    frames = []
-    for i in range(3):
-        cv2.imwrite(str(src / "images" / f"im_{i}.jpg"), rng.integers(0, 255, (36, 48, 3), dtype=np.uint8))
-        cv2.imwrite(str(src / "masks" / f"im_{i}.png"), np.full((36, 48), 255, np.uint8))
-        c2w = np.eye(4)
-        c2w[:3, 3] = [0.2 * i, 0.0, 4.0]  # OpenGL: looking down -z at the origin
-        frames.append(
-            {"file_path": f"images/im_{i}.jpg", "mask_path": f"masks/im_{i}.png", "transform_matrix": c2w.tolist()}
-        )
-    meta = {"frames": frames, "fl_x": 40.0, "fl_y": 40.0, "cx": 24.0, "cy": 18.0, "w": 48, "h": 36, "k1": -0.2}
-    (src / "transforms.json").write_text(json.dumps(meta))
+    write_masked_nerfstudio(src, k1=-0.2)
     scene = parse_scene(src, None, DatasetConfig())
     assert reads_cached_copies(scene)
     theta = theta_from_values(
