@@ -5,9 +5,9 @@ objects); fog lifts those pixels towards the airlight. Where a foggy photo is de
 transmission, J = (I − A)/t + A, a medium that is too thin leaves J's dark channel high (haze kept), one that is too
 thick drives it below zero. The loss holds a low quantile of J's dark channel at zero (a pinball loss), which sets
 β's level from the photos where the photometric fit alone cannot tell fog from a hazy scene (every view at about the
-same distance); β's colour stays the photometric fit's, and the airlight is held at its estimate from the photos
-(the trainer stops its gradient, as He et al. estimate A once: a free A sank from 0.85 to 0.70 on the Ethiopian
-head in fog while the scene took the haze in, 5.8 dB lost) (`FogAnalytic.dehaze`). A low quantile
+same distance); β's colour stays the photometric fit's (`FogAnalytic.dehaze`), and the trainer holds the airlight
+at its estimate from the photos, as He et al. estimate A once (a free A sank from 0.85 to 0.70 on the Ethiopian
+head in fog while the scene took the haze in). A low quantile
 rather than the median: in the clean views of the Ethiopian head, the instant-ngp fox and the Lund street (15 px
 patches at 500 px) the median of the dark channel is 0.14-0.23 (white cloth, sky), the 10 % quantile 0.000-0.029.
 """
