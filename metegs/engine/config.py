@@ -58,6 +58,10 @@ class TrainConfig(InstantiateConfig):
     """Name of the run folder; None uses a timestamp."""
     max_steps: Annotated[int, Range(1)] = 3000
     """Number of training steps (one view per step)."""
+    budget_minutes: Annotated[float | None, POSITIVE] = None
+    """Fit the whole command (with its baseline runs) into about this many minutes of wall time: a few timed steps
+    choose the largest image size (longer side at most 1600 px) that holds at least half of `max-steps`, and the steps
+    that fit (at most `max-steps`); the choice is printed and config.yml records it as `max-steps` and the size."""
     seed: int = 0
     """Seed of every random choice (initialisation, view order, densification)."""
     backend: str = "auto"

@@ -98,8 +98,11 @@ class Trainer:
         self._created = time.perf_counter()
         self.device = resolve_device(config.device)
         backend = resolve_backend(config.backend, self.device)
-        # the image size chosen for this device is recorded, so evaluation on another device loads the same
-        dataset = replace(config.dataset, auto_max_side=auto_max_side(config.dataset, self.device.type))
+        # the image size chosen for this device is recorded, so evaluation on another device loads the same (a
+        # budget chooses its own, below)
+        dataset = config.dataset
+        if config.budget_minutes is None:
+            dataset = replace(dataset, auto_max_side=auto_max_side(dataset, self.device.type))
         self.config = config = replace(config, backend=backend, device=str(self.device), dataset=dataset)
         if config.threads > 0:
             torch.set_num_threads(config.threads)
@@ -114,6 +117,13 @@ class Trainer:
         self.scene = (
             scene if scene is not None else self.prepare_scene(parse_scene(config.data, config.parser, config.dataset))
         )
+        if config.budget_minutes is not None:
+            from metegs.engine.budget import plan_budget
+
+            plan = plan_budget(type(self), config, self.scene, spent_s=time.perf_counter() - self._created)
+            self.config = config = plan.config
+            seed_everything(config.seed)  # the run is the one its recorded flags reproduce
+            self.decide("budget", plan.text)
         self.dataset = Dataset(self.scene, config.dataset, device=self.device)
         if config.dataset.downscale is None:
             w, h = self.dataset.sizes[0]
