@@ -180,7 +180,13 @@ class MeteGSTrainer(Trainer):
             self.decide(f"{name} layers", "on: β learns how it changes with height")
         else:
             self.decide(f"{name} layers", f"off: --{name}.no-layered")
-        if not fog.use_record_prior and fog.learn_patches():
+        if fog.config.patches <= 0:
+            self.decide(f"{name} patches", f"off: --{name}.patches 0")
+        elif not dark:
+            self.decide(
+                f"{name} patches", "off: they follow the dark channel prior, which measures the fog patch by patch"
+            )
+        elif fog.learn_patches():
             g = fog.patch_log_scale.shape
             self.decide(f"{name} patches", f"on: per view, a {g[2]}x{g[1]} grid scales the optical depth")
 

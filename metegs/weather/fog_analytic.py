@@ -67,9 +67,10 @@ class FogAnalyticConfig(WeatherModelConfig):
     """Weight of that prior, record_prior_weight · mean((ln β − ln β_θ)²)."""
     layered: bool = True
     """Where the photos measure β (the record prior off), also learn how β changes with height."""
-    patches: Annotated[int, NON_NEGATIVE] = 0
-    """Where the photos measure β, also learn per view a coarse grid of this many cells along the longer side that
-    scales the optical depth: fog that varies in patches (0: off)."""
+    patches: Annotated[int, NON_NEGATIVE] = 4
+    """Where the dark-channel prior holds the fog (blind training, views at one distance), also learn per view a
+    coarse grid of this many cells along the longer side that scales the optical depth: fog that varies in patches,
+    which the prior measures patch by patch (0: off)."""
     patches_weight: Annotated[float, NON_NEGATIVE] = 0.01
     """Weight of the patches' prior, mean of their squared log-scales (they stay at 1 unless the photos pay)."""
 
@@ -253,10 +254,13 @@ class FogAnalytic(WeatherModel):
         return sum(terms) if terms else None
 
     def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
-        """As torch's; a checkpoint saved before β could change with height loads as a uniform medium."""
+        """As torch's; a checkpoint saved before β could change with height loads as a uniform medium, and one whose
+        patches never learned loads into any grid."""
         state = dict(state_dict)
         state.setdefault("height_rate", torch.zeros_like(self.height_rate))
-        state.setdefault("patch_log_scale", torch.zeros_like(self.patch_log_scale))
+        saved = state.get("patch_log_scale")
+        if saved is None or (saved.shape != self.patch_log_scale.shape and not saved.any()):  # unlearned: any grid
+            state["patch_log_scale"] = torch.zeros_like(self.patch_log_scale)
         return super().load_state_dict(state, strict, assign)
 
     def summary(self) -> dict:

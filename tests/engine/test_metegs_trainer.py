@@ -150,8 +150,17 @@ def test_the_dark_channel_prior_holds_the_fog_where_blind_photos_cannot_measure_
         torch.equal(fog.airlight.detach(), airlight)
         and "airlight estimated at the start" in blind.decisions["dark channel prior"]
     )
+    # and it measures the fog patch by patch: a per-view grid scales the optical depth, learned with the rest
+    assert blind.decisions["fog-analytic patches"].startswith("on: per view, a 4x")
+    assert (
+        fog.patch_log_scale.requires_grad
+        and fog.patchy
+        and not torch.equal(fog.patch_log_scale.detach(), torch.zeros_like(fog.patch_log_scale))
+    )
     free = next(m for m in around.weather_models if m.name == "fog-analytic")
     assert free.airlight_logit.requires_grad  # where the photos measure the medium, the airlight learns
+    assert around.decisions["fog-analytic patches"].startswith("off: they follow the dark channel prior")
+    assert not free.patch_log_scale.requires_grad and not free.patchy
     forced = tiny_metegs(
         tmp_path / "forced",
         conditions=conditions,

@@ -110,3 +110,17 @@ def test_patches_scale_the_optical_depth_cell_by_cell_and_their_prior_pulls_them
     medium.use_record_prior = False
     assert float(medium.prior(0).detach()) == pytest.approx(0.01 * 0.5 * float(torch.log(torch.tensor(2.0))) ** 2)
     assert fog(300.0).prior(0) is None  # neither prior is on
+
+
+def test_a_medium_whose_patches_never_learned_loads_into_any_grid():
+    """Runs saved before patches were on by default (a 0-cell grid) reopen with the default grid, still uniform;
+    learned patches keep their shape."""
+    old = fog(300.0, patches=0).state_dict()
+    medium = fog(300.0, patches=4)
+    medium.load_state_dict(old)
+    assert medium.patch_log_scale.shape == (1, 4, 4) and not medium.patchy
+    learned = fog(300.0, patches=2)
+    with torch.no_grad():
+        learned.patch_log_scale += 0.5
+    with pytest.raises(RuntimeError, match="patch_log_scale"):
+        medium.load_state_dict(learned.state_dict())
