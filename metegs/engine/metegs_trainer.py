@@ -182,9 +182,11 @@ class MeteGSTrainer(Trainer):
             self.decide(f"{name} layers", f"off: --{name}.no-layered")
         if fog.config.patches <= 0:
             self.decide(f"{name} patches", f"off: --{name}.patches 0")
-        elif not dark:
+        elif not (dark or (self.use_clean and not measurable)):
             self.decide(
-                f"{name} patches", "off: they follow the dark channel prior, which measures the fog patch by patch"
+                f"{name} patches",
+                "off: they learn where the views cannot measure β, under the dark channel prior or beside clean "
+                "references",
             )
         elif fog.learn_patches():
             g = fog.patch_log_scale.shape

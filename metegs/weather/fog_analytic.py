@@ -68,9 +68,9 @@ class FogAnalyticConfig(WeatherModelConfig):
     layered: bool = True
     """Where the photos measure β (the record prior off), also learn how β changes with height."""
     patches: Annotated[int, NON_NEGATIVE] = 4
-    """Where the dark-channel prior holds the fog (blind training, views at one distance), also learn per view a
-    coarse grid of this many cells along the longer side that scales the optical depth: fog that varies in patches,
-    which the prior measures patch by patch (0: off)."""
+    """Where the views cannot measure β (every view at one distance) and the dark-channel prior (blind) or clean
+    references measure the fog instead, also learn per view a coarse grid of this many cells along the longer side
+    that scales the optical depth: fog that varies in patches (0: off)."""
     patches_weight: Annotated[float, NON_NEGATIVE] = 0.01
     """Weight of the patches' prior, mean of their squared log-scales (they stay at 1 unless the photos pay)."""
 

@@ -159,7 +159,7 @@ def test_the_dark_channel_prior_holds_the_fog_where_blind_photos_cannot_measure_
     )
     free = next(m for m in around.weather_models if m.name == "fog-analytic")
     assert free.airlight_logit.requires_grad  # where the photos measure the medium, the airlight learns
-    assert around.decisions["fog-analytic patches"].startswith("off: they follow the dark channel prior")
+    assert around.decisions["fog-analytic patches"].startswith("off: they learn where the views cannot measure β")
     assert not free.patch_log_scale.requires_grad and not free.patchy
     forced = tiny_metegs(
         tmp_path / "forced",
@@ -177,6 +177,8 @@ def test_the_dark_channel_prior_holds_the_fog_where_blind_photos_cannot_measure_
     ):
         other = tiny_metegs(tmp_path / name, conditions=conditions, max_steps=1, **options).setup(scene=rig)
         assert other.dehazing == [] and other.decisions["fog-analytic prior"].startswith("on (weight 0.1)")
+        # beside clean references the patches learn too (the references measure the fog); with no measure, not
+        assert other.decisions["fog-analytic patches"].startswith("on:" if name == "refs" else "off:")
 
 
 def test_clean_views_look_into_the_airlight_where_the_scene_is_transparent(trained):
