@@ -111,30 +111,36 @@ def companion_configs(trainer) -> list[TrainConfig]:
     return runs
 
 
+def run_costs(trainer, evals: int) -> tuple[float, float]:
+    """(seconds a step, seconds of ``evals`` evaluations) of ``trainer``'s run, growth included; the trainer is spent."""
+    step_s = timed_steps(trainer) * GROWTH
+    t0 = time.perf_counter()
+    trainer.record_eval(quick=True)
+    return step_s, evals * (time.perf_counter() - t0) * GROWTH
+
+
 def measure(trainer_cls, config: TrainConfig, scene: SceneData, d: int) -> Trial:
-    """Set the command's runs up at downscale ``d`` and time their first steps and one evaluation."""
+    """Set the command's runs up at downscale ``d`` (each is set up again after planning, so that counts) and time
+    their first steps and one evaluation."""
     from metegs.engine.trainer import Trainer
 
     trial_config = replace(at_downscale(config, scene, d), budget_minutes=None, progress=False, viewer=False)
     evals = (math.ceil(1 / config.eval_every) if config.eval_every > 0 else 0) + 1
     t0 = time.perf_counter()
     trainer = trainer_cls(trial_config, scene=scene)
-    built_s = time.perf_counter() - t0  # each run is set up again after planning
+    costs = [(time.perf_counter() - t0, *run_costs(trainer, evals))]
     width, height = trainer.dataset.sizes[0]
     companions = [(Trainer if c.method == "3dgs" else trainer_cls, c) for c in companion_configs(trainer)]
-    step_s, fixed_s = 0.0, built_s
-    for cls, run_config in [(None, None), *companions]:
-        if cls is not None:
-            del trainer
-            gc.collect()
-            t0 = time.perf_counter()
-            trainer = cls(run_config, scene=scene)
-            fixed_s += time.perf_counter() - t0
-        step_s += timed_steps(trainer) * GROWTH
+    del trainer
+    for cls, run_config in companions:
+        gc.collect()
         t0 = time.perf_counter()
-        trainer.record_eval(quick=True)
-        fixed_s += evals * (time.perf_counter() - t0) * GROWTH
-    return Trial(d, width, height, 1 + len(companions), step_s, fixed_s)
+        trainer = cls(run_config, scene=scene)
+        costs.append((time.perf_counter() - t0, *run_costs(trainer, evals)))
+        del trainer
+    gc.collect()
+    built_s, step_s, eval_s = (sum(c) for c in zip(*costs, strict=True))
+    return Trial(d, width, height, len(costs), step_s, built_s + eval_s)
 
 
 def plan_budget(trainer_cls, config: TrainConfig, scene: SceneData, spent_s: float) -> BudgetPlan:
@@ -147,9 +153,13 @@ def plan_budget(trainer_cls, config: TrainConfig, scene: SceneData, spent_s: flo
             "(--max-steps sets where it ends)"
         )
     started = time.perf_counter()
+    half = math.ceil(MIN_STEP_SHARE * config.max_steps)
+
+    def elapsed() -> float:
+        return spent_s + time.perf_counter() - started
 
     def left() -> float:
-        return budget_s - spent_s - (time.perf_counter() - started)
+        return budget_s - elapsed()
 
     candidates = downscales(scene, config)
     tried: list[Trial] = []
@@ -157,27 +167,26 @@ def plan_budget(trainer_cls, config: TrainConfig, scene: SceneData, spent_s: flo
     for d in candidates:
         if tried and d != candidates[-1]:  # a step costs at least its share of a larger image's: skip what cannot fit
             share = (tried[-1].downscale / d) ** 2
-            if left() < share * tried[-1].seconds(math.ceil(MIN_STEP_SHARE * config.max_steps)):
+            if left() < share * tried[-1].seconds(half):
                 continue
         tried.append(measure(trainer_cls, config, scene, d))
         steps = min(config.max_steps, tried[-1].steps_within(left()))
-        if steps >= MIN_STEP_SHARE * config.max_steps:
+        if steps >= half:
             break
     chosen = tried[-1]
     if steps < LEAST_STEP_SHARE * config.max_steps:
-        spent = spent_s + time.perf_counter() - started
-        need = (spent + chosen.seconds(math.ceil(MIN_STEP_SHARE * config.max_steps))) / 60
+        which = "the smallest size" if len(candidates) > 1 else "the size set"
         raise ConfigError(
-            f"--budget-minutes {config.budget_minutes:g} is too short: at {chosen.width}x{chosen.height} px, "
-            f"{'the smallest size' if len(candidates) > 1 else 'the size set'}, {steps} of {config.max_steps} steps fit; {math.ceil(MIN_STEP_SHARE * config.max_steps)} steps need "
-            f"about {need:.1f} minutes (lower --max-steps, or allow more minutes)"
+            f"--budget-minutes {config.budget_minutes:g} is too short: at {chosen.width}x{chosen.height} px, {which}, "
+            f"{steps} of {config.max_steps} steps fit; {half} steps need about "
+            f"{(elapsed() + chosen.seconds(half)) / 60:.1f} minutes (lower --max-steps, or allow more minutes)"
         )
     planned = at_downscale(config, scene, chosen.downscale)
     planned = replace(planned, max_steps=steps, budget_minutes=None)
     others = ", ".join(f"{t.width}x{t.height} {t.seconds(config.max_steps) / 60:.1f} min" for t in tried[:-1])
     text = (
         f"{chosen.width}x{chosen.height} px, {steps} steps in about "
-        f"{(spent_s + time.perf_counter() - started + chosen.seconds(steps)) / 60:.1f} of {config.budget_minutes:g} "
+        f"{(elapsed() + chosen.seconds(steps)) / 60:.1f} of {config.budget_minutes:g} "
         f"minutes (the first steps of {chosen.runs} run{'s' if chosen.runs > 1 else ''} timed at "
         f"{1000 * chosen.step_s / GROWTH:.0f} ms"
         + (f"; {config.max_steps} steps would take: {others}" if others else "")
