@@ -15,9 +15,14 @@ from metegs.data.scene import SceneData
 from metegs.errors import ConfigError, DataError
 
 
+def longest_side(cameras: Cameras) -> int:
+    """The longest image side (px) over all views."""
+    return int(torch.maximum(cameras.width, cameras.height).max())
+
+
 def auto_downscale(cameras: Cameras, max_side: int) -> int:
     """Smallest power of two ``d`` with max(W, H) / d <= ``max_side`` over all views (at least 1)."""
-    longest = int(torch.maximum(cameras.width, cameras.height).max())
+    longest = longest_side(cameras)
     d = 1
     while longest / d > max(1, max_side):
         d *= 2

@@ -8,6 +8,7 @@ import math
 import time
 from dataclasses import dataclass, replace
 
+from metegs.data.dataset import Dataset, longest_side
 from metegs.data.scene import SceneData
 from metegs.engine.config import TrainConfig
 from metegs.errors import ConfigError
@@ -63,24 +64,19 @@ class BudgetPlan:
 def downscales(scene: SceneData, config: TrainConfig) -> list[int]:
     """Power-of-two downscales a budget may choose, largest image first: the configured one alone when the size is
     set (`--dataset.downscale` or `--dataset.auto-max-side`)."""
-    from metegs.data.dataset import Dataset
-
     options = config.dataset
     if options.downscale is not None or options.auto_max_side is not None:
         return [Dataset._downscale(scene.cameras, options, "cpu")]
-    longest = int(max(scene.cameras.width.max(), scene.cameras.height.max()))
+    longest = longest_side(scene.cameras)
     found = [d for d in (2**k for k in range(12)) if SMALLEST_SIDE <= longest / d <= LARGEST_SIDE]
-    if not found:  # the capture is smaller than the smallest side: its own size
-        return [1 if longest < SMALLEST_SIDE else 2 ** math.ceil(math.log2(longest / LARGEST_SIDE))]
-    return found
+    return found or [1]  # none: the capture is smaller than the smallest side, so its own size
 
 
 def at_downscale(config: TrainConfig, scene: SceneData, d: int) -> TrainConfig:
     """``config`` loading ``scene``'s images at downscale ``d`` (as a longer side, so the size stays automatic)."""
     if config.dataset.downscale is not None:
         return config
-    longest = int(max(scene.cameras.width.max(), scene.cameras.height.max()))
-    return replace(config, dataset=replace(config.dataset, auto_max_side=math.ceil(longest / d)))
+    return replace(config, dataset=replace(config.dataset, auto_max_side=math.ceil(longest_side(scene.cameras) / d)))
 
 
 def timed_steps(trainer, warm: int = WARM_STEPS, timed: int = TIMED_STEPS) -> float:
