@@ -14,7 +14,7 @@ import json
 import shutil
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Literal
 
@@ -77,6 +77,9 @@ class SfmResult:
     mean_reprojection_error_px: float
     other_models: list[int] = field(default_factory=list)
     """Registered-view counts of the smaller models COLMAP also built (not written)."""
+    focal_prior: str = "exif"
+    """Where the kept model's focal length started: "exif" (the photos' EXIF, else COLMAP's guess), or "dropped"
+    (mapping from EXIF left photos out; mapping with the focal length unknown registered more)."""
     timings_s: dict[str, float] = field(default_factory=dict)
     options: dict = field(default_factory=dict)
 
@@ -208,6 +211,27 @@ def _map(pycolmap, db: Path, images: Path, sparse: Path, count: int, opts: SfmOp
     return sorted(models.values(), key=lambda rec: rec.num_reg_images(), reverse=True)
 
 
+RETRY_SEEDS = 4
+"""Mapping attempts (initial seeds) without the EXIF focal length when mapping with it leaves photos out."""
+
+
+def _drop_focal_priors(pycolmap, db: Path) -> bool:
+    """Mark every camera's focal length in ``db`` as unknown; returns whether any had a prior (from EXIF)."""
+    database = pycolmap.Database.open(db)
+    try:
+        cameras = [cam for cam in database.read_all_cameras() if cam.has_prior_focal_length]
+        for cam in cameras:
+            cam.has_prior_focal_length = False
+            database.update_camera(cam)
+    finally:
+        database.close()
+    return bool(cameras)
+
+
+def _num_registered(models: list) -> int:
+    return models[0].num_reg_images() if models else 0
+
+
 def _is_pinhole(rec) -> bool:
     return all(cam.model.name in ("PINHOLE", "SIMPLE_PINHOLE") for cam in rec.cameras.values())
 
@@ -269,6 +293,22 @@ def run_sfm(
         t0 = time.perf_counter()
         work = tmp / "mapper"
         models = _map(pycolmap, db, staged_images, work, len(names), opts, progress)
+        focal_prior = "exif"
+        if _num_registered(models) < len(names) and _drop_focal_priors(pycolmap, db):
+            # a wrong EXIF focal length (a phone's crop, a zoom) marks true pairs as uncalibrated, and mapping
+            # can stall after its first views: map again with the focal length unknown from a few initial
+            # seeds, and keep the model that registers the most photos
+            for attempt in range(RETRY_SEEDS):
+                retry_dir = tmp / f"mapper-no-focal-{attempt}"
+                retry_opts = replace(opts, seed=opts.seed + attempt)
+                retry = _map(pycolmap, db, staged_images, retry_dir, len(names), retry_opts, progress)
+                if _num_registered(retry) > _num_registered(models):
+                    shutil.rmtree(work, ignore_errors=True)
+                    models, work, focal_prior = retry, retry_dir, "dropped"
+                else:
+                    shutil.rmtree(retry_dir)
+                if _num_registered(models) == len(names):
+                    break
         timings["map"] = time.perf_counter() - t0
         best = models[0] if models else None
         registered = sorted(best.images[i].name for i in best.reg_image_ids()) if best else []
@@ -301,6 +341,7 @@ def run_sfm(
             num_points=best.num_points3D(),
             mean_reprojection_error_px=float(best.compute_mean_reprojection_error()),
             other_models=[rec.num_reg_images() for rec in models[1:]],
+            focal_prior=focal_prior,
             timings_s={k: round(v, 2) for k, v in timings.items()},
             options={**asdict(opts), "matcher": matcher, "masks": None if masks is None else str(masks)},
         )

@@ -138,3 +138,53 @@ def test_existing_output_is_kept_without_overwrite(tmp_path):
     with pytest.raises(ConfigError, match="--overwrite"):
         run_sfm(photos, out)
     assert (out / "keep.txt").read_text() == "mine"
+
+
+def test_focal_priors_are_dropped_from_the_database(tmp_path):
+    import pycolmap
+
+    from metegs.data.sfm import _drop_focal_priors
+
+    db = tmp_path / "database.db"
+    database = pycolmap.Database.open(db)
+    camera = pycolmap.Camera.create(1, pycolmap.CameraModelId.SIMPLE_RADIAL, 900.0, 640, 480)
+    camera.has_prior_focal_length = True
+    database.write_camera(camera)
+    database.close()
+    assert _drop_focal_priors(pycolmap, db)
+    database = pycolmap.Database.open(db)
+    assert not any(cam.has_prior_focal_length for cam in database.read_all_cameras())
+    database.close()
+    assert not _drop_focal_priors(pycolmap, db)  # nothing left to drop: no second mapping
+
+
+def test_mapping_that_leaves_photos_out_retries_without_the_exif_focal(tmp_path, monkeypatch):
+    """A first mapping that registers nothing (as a wrong EXIF focal length can leave it) is retried with the
+    focal length unknown, and the retry's model is kept and said so."""
+    if not SCENE.is_dir():
+        pytest.skip(f"real LLFF scene not found at {SCENE} (needs ../shared beside the repository)")
+    import metegs.data.sfm as sfm
+
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for name in sorted((SCENE / "images_8").iterdir())[:8:2]:
+        shutil.copy2(name, photos / name.name)
+    real_map, calls, dropped = sfm._map, [], []
+
+    def first_fails(*args, **kwargs):
+        calls.append(args[-2].seed)
+        return [] if len(calls) == 1 else real_map(*args, **kwargs)
+
+    def drop(pycolmap, db):
+        dropped.append(db)
+        return True  # these photos carry no EXIF focal: count the call and go on
+
+    monkeypatch.setattr(sfm, "_map", first_fails)
+    monkeypatch.setattr(sfm, "_drop_focal_priors", drop)
+    opts = SfmOptions(num_threads=1, accurate_features=True, min_inliers=15)
+    result = run_sfm(photos, tmp_path / "out", opts, masks=SCENE / "masks_8")
+    assert len(dropped) == 1 and calls[:2] == [0, 0]
+    assert result.focal_prior == "dropped" and len(result.registered) >= 3
+    record = json.loads((tmp_path / "out" / "process_images.json").read_text())
+    assert record["focal_prior"] == "dropped"
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["images", "process_images.json", "sparse"]
