@@ -46,7 +46,7 @@ _TORCH_TAG = "".join(ch if ch.isalnum() else "_" for ch in torch.__version__)
 EXTENSION_NAME = f"metegs_cpu_composite_{_TORCH_TAG}"
 
 # -march=native (x86) / -mcpu=native (ARM): the compositing kernels work on 16-pixel tile rows as GCC vector types,
-# which become AVX-512 (or AVX2, NEON) instructions here. The binary is built on, and cached for, the machine that runs
+# which become AVX-512 instructions here, or (csrc/metegs_cpu.h's Split) pairs of AVX2 or quads of SSE / NEON ones. The binary is built on, and cached for, the machine that runs
 # it; the cache folder also carries a tag of the CPU model/flags so that a home directory shared between different
 # machines does not load a binary built for another CPU. -mprefer-vector-width=512 lets GCC use zmm registers where
 # the CPU has AVX-512. -ffp-contract=off keeps forward and backward alphas bit-identical (see composite.cpp);

@@ -49,11 +49,8 @@ constexpr int TP = TS * TS;   // pixels per tile
 constexpr int NGRAD = 7;      // per-intersection geometry gradients: mx, my, a, b, c, opacity, depth
 static_assert(TS == 16, "a tile row is one 16-lane vector");
 
-// A tile row: 16 lanes of scalar_t (Vec) and the lane masks / integers of the same width (Mask, MaskInt).
-template <typename S, int N>
-struct VecN {
-  typedef S type __attribute__((vector_size(N * sizeof(S))));
-};
+// A tile row: 16 lanes of scalar_t (Vec) and the lane masks / integers of the same width (Mask, MaskInt); VecN
+// (metegs_cpu.h) is one GCC vector with AVX-512, else a Split of native vectors.
 template <typename scalar_t>
 using Vec = typename VecN<scalar_t, TS>::type;
 template <typename scalar_t>
@@ -95,7 +92,31 @@ inline __attribute__((always_inline)) Vec<float> fold(Vec<float> x, Vec<float> y
     lo[l] = 16 * from_y + block + k;
     hi[l] = 16 * from_y + block + H + k;
   }
+#if !METEGS_AVX512
+  {
+    constexpr int P = Vec<float>::P;
+    Vec<float> r;
+    if constexpr (H >= P) {  // whole parts: lane l * P of the result sums parts of x or y
+      for (int q = 0; q < Vec<float>::K; ++q) {
+        const Vec<float>& src = lo[q * P] >= 16 ? y : x;
+        r.p[q] = src.p[(lo[q * P] % 16) / P] + src.p[(hi[q * P] % 16) / P];
+      }
+    } else {  // blocks inside a part: the same shuffle on each pair of parts
+      typedef int32_t PartIdx __attribute__((vector_size(P * sizeof(int32_t))));
+      PartIdx plo, phi;
+      for (int l = 0; l < P; ++l) {
+        const int block = l / (2 * H) * (2 * H), from_y = (l % (2 * H)) / H, k = l % H;
+        plo[l] = P * from_y + block + k;
+        phi[l] = P * from_y + block + H + k;
+      }
+      for (int q = 0; q < Vec<float>::K; ++q)
+        r.p[q] = __builtin_shuffle(x.p[q], y.p[q], plo) + __builtin_shuffle(x.p[q], y.p[q], phi);
+    }
+    return r;
+  }
+#else
   return __builtin_shuffle(x, y, lo) + __builtin_shuffle(x, y, hi);
+#endif
 }
 
 // The lane sums of v[0..9] as lanes 0..9 of one vector (lanes 10..15: 0), by four levels of `fold` (16 -> 8 ->
@@ -108,7 +129,16 @@ inline __attribute__((always_inline)) Vec<float> row_sums10(const Vec<float> (&v
   const Vec<float> c2 = fold<4>(fold<8>(v[8], v[9]), z);
   const Vec<float> e = fold<1>(fold<2>(c0, c1), fold<2>(c2, z));
   // lane i of e holds input bitreverse4(i); the same permutation puts input k in lane k
-  return __builtin_shuffle(e, I32{0, 8, 4, 12, 2, 10, 6, 14, 1, 9, 5, 13, 3, 11, 7, 15});
+  constexpr int order[TS] = {0, 8, 4, 12, 2, 10, 6, 14, 1, 9, 5, 13, 3, 11, 7, 15};
+#if !METEGS_AVX512
+  Vec<float> r;
+  for (int l = 0; l < TS; ++l) r[l] = e[order[l]];
+  return r;
+#else
+  I32 idx;
+  for (int l = 0; l < TS; ++l) idx[l] = order[l];
+  return __builtin_shuffle(e, idx);
+#endif
 }
 
 template <typename scalar_t>
@@ -138,7 +168,7 @@ inline __attribute__((always_inline)) Vec<double> fmadd(Vec<double> a, Vec<doubl
 inline __attribute__((always_inline)) Vec<float> neg_exp(Vec<float> x) {
   using V = Vec<float>;
   const V lo = splat<V>(-20.0f);
-  x = x < lo ? lo : x;
+  x = select(x < lo, lo, x);
   // round(x / ln 2) with the 1.5 * 2^23 trick (exact for |x / ln 2| < 2^22; no -ffast-math here).
   const V t = fmadd(x, splat<V>(1.44269504088896341f), splat<V>(12582912.0f));
   const V n = t - 12582912.0f;
@@ -155,8 +185,8 @@ inline __attribute__((always_inline)) Vec<float> neg_exp(Vec<float> x) {
 #if METEGS_AVX512
   return (V)_mm512_scalef_ps((__m512)y, (__m512)n);  // y 2^n
 #else
-  const Mask<float> bits = (__builtin_convertvector(n, Mask<float>) + 127) << 23;  // n in [-29, 0]: a normal 2^n
-  return y * (V)bits;
+  const Mask<float> bits = (convert<Mask<float>>(n) + 127) << 23;  // n in [-29, 0]: a normal 2^n
+  return y * bitcast<V>(bits);
 #endif
 }
 
@@ -195,9 +225,9 @@ inline __attribute__((always_inline)) RowAlpha<scalar_t> row_alpha(Vec<scalar_t>
   const V zero = V{}, amax = splat<V>(Consts<scalar_t>::alpha_max);
   RowAlpha<scalar_t> r;
   r.power = scalar_t(-0.5) * (adx2 + (c * dy) * dy) - bdx * dy;
-  r.e = neg_exp(r.power < zero ? r.power : zero);
+  r.e = neg_exp(select(r.power < zero, r.power, zero));
   r.oe = o * r.e;
-  r.alpha = r.oe < amax ? r.oe : amax;
+  r.alpha = select(r.oe < amax, r.oe, amax);
   return r;
 }
 
@@ -283,7 +313,7 @@ inline Vec<scalar_t> column_centres(int64_t x0) {
 // one unaligned load).
 template <typename V, typename S>
 inline __attribute__((always_inline)) V load_lanes(const S* src, int64_t n) {
-  if constexpr (std::is_same_v<S, float>) return load_first(src, n);
+  if constexpr (std::is_same_v<S, float>) return load_first<V>(src, n);
   V v{};
   if (n == TS) std::memcpy(&v, src, sizeof(V));
   else for (int64_t i = 0; i < n; ++i) v[i] = src[i];
@@ -351,15 +381,15 @@ void forward_kernel(const Packed<scalar_t>* __restrict__ pk, const scalar_t* __r
         for (int r = r0; r < r1; ++r) {
           const scalar_t dy = (static_cast<scalar_t>(y0 + r) + scalar_t(0.5)) - my;
           const V alpha = row_alpha<scalar_t>(adx2, bdx, dy, c, o).alpha;
-          const V valid = alpha >= amin ? one - st[r].done : zero;
+          const V valid = select(alpha >= amin, one - st[r].done, zero);
           const V Tn = st[r].T * (one - alpha);
-          const V stop = Tn < tmin ? valid : zero;  // T would fall below T_MIN
+          const V stop = select(Tn < tmin, valid, zero);  // T would fall below T_MIN
           const V contrib = valid - stop;
           const V wv = contrib * (alpha * st[r].T);
           st[r].dep = fmadd(wv, splat<V>(z), st[r].dep);
           const M used = contrib > half;
-          st[r].T = used ? Tn : st[r].T;
-          st[r].last = used ? jp1 : st[r].last;
+          st[r].T = select(used, Tn, st[r].T);
+          st[r].last = select(used, jp1, st[r].last);
           st[r].done += stop;
           if constexpr (DC == 3) {
             st[r].col[0] = fmadd(wv, splat<V>(P.col[0]), st[r].col[0]);
@@ -386,7 +416,7 @@ void forward_kernel(const Packed<scalar_t>* __restrict__ pk, const scalar_t* __r
       const int64_t nx = std::min<int64_t>(TS, W - x0);
       for (int r = 0; r < TS; ++r) {
         std::memcpy(out_T + t * TP + r * TS, &st[r].T, sizeof(V));
-        const I32 lr = __builtin_convertvector(st[r].last, I32);
+        const I32 lr = convert<I32>(st[r].last);
         std::memcpy(out_last + t * TP + r * TS, &lr, sizeof(I32));
         const int64_t y = y0 + r;
         if (y >= H) continue;
@@ -447,7 +477,7 @@ void backward_kernel(const Packed<scalar_t>* __restrict__ pk, const scalar_t* __
         st[r].T = Tf;
         I32 lr;
         std::memcpy(&lr, saved_last + t * TP + r * TS, sizeof(I32));
-        st[r].last = __builtin_convertvector(lr, M);
+        st[r].last = convert<M>(lr);
         row_last[r] = 0;
         for (int cx = 0; cx < TS; ++cx) row_last[r] = std::max(row_last[r], lr[cx]);
         jmax = std::max(jmax, row_last[r]);
@@ -483,10 +513,10 @@ void backward_kernel(const Packed<scalar_t>* __restrict__ pk, const scalar_t* __
           const scalar_t dy = (static_cast<scalar_t>(y0 + r) + scalar_t(0.5)) - my;
           const auto ra = row_alpha<scalar_t>(adx2, bdx, dy, c, o);
           const V power = ra.power, e = ra.e, oe = ra.oe, alpha = ra.alpha;
-          const V listed = jj < st[r].last ? one : zero;
-          const V valid = alpha >= amin ? listed : zero;
+          const V listed = select(jj < st[r].last, one, zero);
+          const V valid = select(alpha >= amin, listed, zero);
           const V inv_om = recip(one - alpha);  // alpha <= 0.99
-          const V Tj = valid > half ? st[r].T * inv_om : st[r].T;  // transmittance in front of it
+          const V Tj = select(valid > half, st[r].T * inv_om, st[r].T);  // transmittance in front of it
           const V a_v = valid * alpha;
           const V wv = a_v * Tj;
           // q = (c - colour behind) . dL/dC + (z - depth behind) dL/dD
@@ -501,10 +531,10 @@ void backward_kernel(const Packed<scalar_t>* __restrict__ pk, const scalar_t* __
           const V q = cgz - st[r].U;
           // d(colour, depth)/dalpha = T_j q; d(1 - T_final)/dalpha = T_final / (1 - alpha)
           const V dLda = fmadd(Tj, q, st[r].gAT * inv_om);
-          const V unclamped = oe <= amax ? valid : zero;
-          const V dLdoe = unclamped > half ? dLda : zero;
+          const V unclamped = select(oe <= amax, valid, zero);
+          const V dLdoe = select(unclamped > half, dLda, zero);
           go = fmadd(dLdoe, e, go);
-          const V dLdpow = power <= zero ? dLdoe * oe : zero;
+          const V dLdpow = select(power <= zero, dLdoe * oe, zero);
           s0 += dLdpow;
           s1 = fmadd(dLdpow, splat<V>(dy), s1);
           s2 = fmadd(dLdpow, splat<V>(dy * dy), s2);

@@ -19,11 +19,11 @@
 namespace metegs_cpu {
 namespace {
 
-constexpr int CHAINS = 12;
+constexpr int CHAINS = METEGS_AVX512 ? 12 : 6;  // independent chains that fill the vector registers
 
-double run_chunk(int64_t iterations, Float16 a, Float16 b) {
-  Float16 acc[CHAINS];
-  for (auto& v : acc) v = Float16{};
+double run_chunk(int64_t iterations, Lanes16 a, Lanes16 b) {
+  Lanes16 acc[CHAINS];
+  for (auto& v : acc) v = Lanes16{};
   asm volatile("" : : "r"(acc) : "memory");  // opaque start: no chunk or chain is the same computation to GCC
   for (int64_t i = 0; i < iterations; ++i) {
 #pragma GCC unroll 12
@@ -39,7 +39,7 @@ double run_chunk(int64_t iterations, Float16 a, Float16 b) {
 
 std::vector<double> fma_throughput(int64_t chunks, int64_t iterations, double a, double b) {
   TORCH_CHECK(chunks > 0 && iterations > 0, "fma_throughput: chunks and iterations must be positive");
-  const Float16 va = Float16{} + static_cast<float>(a), vb = Float16{} + static_cast<float>(b);
+  const Lanes16 va = Lanes16{} + static_cast<float>(a), vb = Lanes16{} + static_cast<float>(b);
   std::vector<double> sums(chunks);
   const auto t0 = std::chrono::steady_clock::now();
   metegs::parallel_for(0, chunks, 1, [&](int64_t begin, int64_t end) {
@@ -60,6 +60,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("fma_throughput", &metegs_cpu::fma_throughput,
         "float32 multiply-adds on the kernels' threads -> [seconds, flops, checksum] (the machine's peak, measured)",
         nogil, py::arg("chunks"), py::arg("iterations"), py::arg("a") = 1.0, py::arg("b") = 1.0);
+  m.attr("chains") = metegs_cpu::CHAINS;
   m.def("set_num_threads", [](int64_t n) { metegs::thread_override() = std::max<int64_t>(n, 0); },
         "threads of the probe called from this thread (0: torch's intra-op count)", py::arg("n"));
   m.def("get_num_threads", &metegs::num_threads, "threads the probe runs on when called from this thread");
