@@ -125,11 +125,6 @@ struct VecN {
   using type = Split<S, N>;
 };
 
-template <typename>
-struct is_split : std::false_type {};
-template <typename S, int N>
-struct is_split<Split<S, N>> : std::true_type {};
-
 // m ? a : b per lane (m: a comparison's lanes, all ones or zero).
 template <typename MS, typename S, int N>
 METEGS_INLINE Split<S, N> select(const Split<MS, N>& m, const Split<S, N>& a, const Split<S, N>& b) {
@@ -153,9 +148,6 @@ METEGS_INLINE To convert(const Split<S, N>& v) {
 #endif
 
 #if METEGS_AVX512
-template <typename>
-struct is_split : std::false_type {};
-
 template <typename M, typename V>
 METEGS_INLINE V select(M m, V a, V b) {
   return m ? a : b;
@@ -181,22 +173,10 @@ using Lanes16 = VecN<float, 16>::type;
 
 // a * b + c per lane, rounded once where the CPU fuses it (AVX-512, or AVX2 with FMA), else rounded twice (the
 // extension is built with -ffp-contract=off: multiply-adds are fused only where this is called).
-METEGS_INLINE Float16 fmadd16(Float16 a, Float16 b, Float16 c) {
-#if METEGS_AVX512
-  return (Float16)_mm512_fmadd_ps((__m512)a, (__m512)b, (__m512)c);
-#elif METEGS_FMA
-  __m256 a2[2], b2[2], c2[2];
-  std::memcpy(a2, &a, sizeof(a)), std::memcpy(b2, &b, sizeof(b)), std::memcpy(c2, &c, sizeof(c));
-  for (int h = 0; h < 2; ++h) a2[h] = _mm256_fmadd_ps(a2[h], b2[h], c2[h]);
-  std::memcpy(&a, a2, sizeof(a));
-  return a;
-#else
-  return a * b + c;
-#endif
-}
-
-#if !METEGS_AVX512
 METEGS_INLINE Lanes16 fmadd16(const Lanes16& a, const Lanes16& b, const Lanes16& c) {
+#if METEGS_AVX512
+  return (Lanes16)_mm512_fmadd_ps((__m512)a, (__m512)b, (__m512)c);
+#else
   Lanes16 r;
 #if METEGS_FMA
   static_assert(Lanes16::P == 8, "FMA parts are 8 floats");
@@ -206,8 +186,8 @@ METEGS_INLINE Lanes16 fmadd16(const Lanes16& a, const Lanes16& b, const Lanes16&
   for (int k = 0; k < Lanes16::K; ++k) r.p[k] = a.p[k] * b.p[k] + c.p[k];
 #endif
   return r;
-}
 #endif
+}
 
 // The first n (0..16) floats at src as 16 lanes, zeros after them (AVX-512: one masked load).
 template <typename V = Float16>
