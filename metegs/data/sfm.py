@@ -79,7 +79,7 @@ class SfmResult:
     """Registered-view counts of the smaller models COLMAP also built (not written)."""
     focal_prior: str = "exif"
     """Where the kept model's focal length started: "exif" (the photos' EXIF, else COLMAP's guess), or "dropped"
-    (mapping from EXIF left photos out; mapping with the focal length unknown registered more)."""
+    (mapping from EXIF stalled, `RETRY_BELOW`; mapping with the focal length unknown registered more)."""
     timings_s: dict[str, float] = field(default_factory=dict)
     options: dict = field(default_factory=dict)
 
@@ -212,7 +212,10 @@ def _map(pycolmap, db: Path, images: Path, sparse: Path, count: int, opts: SfmOp
 
 
 RETRY_SEEDS = 4
-"""Mapping attempts (initial seeds) without the EXIF focal length when mapping with it leaves photos out."""
+"""Mapping attempts (initial seeds) without the EXIF focal length when mapping with it stalls."""
+RETRY_BELOW = 0.9
+"""Mapping with the EXIF focal length counts as stalled below this share of the photos registered (a few photos
+that match nothing do not make a large capture map five times)."""
 
 
 def _drop_focal_priors(pycolmap, db: Path) -> bool:
@@ -294,7 +297,7 @@ def run_sfm(
         work = tmp / "mapper"
         models = _map(pycolmap, db, staged_images, work, len(names), opts, progress)
         focal_prior = "exif"
-        if _num_registered(models) < len(names) and _drop_focal_priors(pycolmap, db):
+        if _num_registered(models) < RETRY_BELOW * len(names) and _drop_focal_priors(pycolmap, db):
             # a wrong EXIF focal length (a phone's crop, a zoom) marks true pairs as uncalibrated, and mapping
             # can stall after its first views: map again with the focal length unknown from a few initial
             # seeds, and keep the model that registers the most photos
