@@ -158,17 +158,23 @@ def test_focal_priors_are_dropped_from_the_database(tmp_path):
     assert not _drop_focal_priors(pycolmap, db)  # nothing left to drop: no second mapping
 
 
-def test_mapping_that_leaves_photos_out_retries_without_the_exif_focal(tmp_path, monkeypatch):
-    """A first mapping that registers nothing (as a wrong EXIF focal length can leave it) is retried with the
-    focal length unknown, and the retry's model is kept and said so."""
+@pytest.fixture
+def four_photos(tmp_path):
+    """Four photos of the real scene (every other one of the first eight), for the mapping-retry tests."""
     if not SCENE.is_dir():
         pytest.skip(f"real LLFF scene not found at {SCENE} (needs ../shared beside the repository)")
-    import metegs.data.sfm as sfm
-
     photos = tmp_path / "photos"
     photos.mkdir()
     for name in sorted((SCENE / "images_8").iterdir())[:8:2]:
         shutil.copy2(name, photos / name.name)
+    return photos
+
+
+def test_mapping_that_leaves_photos_out_retries_without_the_exif_focal(four_photos, tmp_path, monkeypatch):
+    """A first mapping that registers nothing (as a wrong EXIF focal length can leave it) is retried with the
+    focal length unknown, and the retry's model is kept and said so."""
+    import metegs.data.sfm as sfm
+
     real_map, calls, dropped = sfm._map, [], []
 
     def first_fails(*args, **kwargs):
@@ -182,7 +188,7 @@ def test_mapping_that_leaves_photos_out_retries_without_the_exif_focal(tmp_path,
     monkeypatch.setattr(sfm, "_map", first_fails)
     monkeypatch.setattr(sfm, "_drop_focal_priors", drop)
     opts = SfmOptions(num_threads=1, accurate_features=True, min_inliers=15)
-    result = run_sfm(photos, tmp_path / "out", opts, masks=SCENE / "masks_8")
+    result = run_sfm(four_photos, tmp_path / "out", opts, masks=SCENE / "masks_8")
     assert len(dropped) == 1 and calls[:2] == [0, 0]
     assert result.focal_prior == "dropped" and len(result.registered) >= 3
     record = json.loads((tmp_path / "out" / "process_images.json").read_text())
@@ -190,18 +196,12 @@ def test_mapping_that_leaves_photos_out_retries_without_the_exif_focal(tmp_path,
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["images", "process_images.json", "sparse"]
 
 
-def test_mapping_that_registers_enough_photos_is_not_repeated(tmp_path, monkeypatch):
+def test_mapping_that_registers_enough_photos_is_not_repeated(four_photos, tmp_path, monkeypatch):
     """Only a stalled mapping (under `RETRY_BELOW` of the photos) maps again: 4 of 4 keep the EXIF start."""
-    if not SCENE.is_dir():
-        pytest.skip(f"real LLFF scene not found at {SCENE} (needs ../shared beside the repository)")
     import metegs.data.sfm as sfm
 
-    photos = tmp_path / "photos"
-    photos.mkdir()
-    for name in sorted((SCENE / "images_8").iterdir())[:8:2]:
-        shutil.copy2(name, photos / name.name)
     dropped = []
     monkeypatch.setattr(sfm, "_drop_focal_priors", lambda pycolmap, db: dropped.append(db) or True)
     opts = SfmOptions(num_threads=1, accurate_features=True, min_inliers=15)
-    result = run_sfm(photos, tmp_path / "out", opts, masks=SCENE / "masks_8")
+    result = run_sfm(four_photos, tmp_path / "out", opts, masks=SCENE / "masks_8")
     assert len(result.registered) >= sfm.RETRY_BELOW * 4 and not dropped and result.focal_prior == "exif"
