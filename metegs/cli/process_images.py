@@ -60,8 +60,11 @@ def main(args: ProcessImagesArgs, console: Console | None = None) -> SfmResult:
         f"mean reprojection error {result.mean_reprojection_error_px:.2f} px -> {result.output}",
         highlight=False,
     )
-    if result.focal_prior == "dropped":
-        console.print("the photos' EXIF focal length left views out: mapped again with the focal length unknown")
+    if result.initial_pair == "forward":
+        unknown = " and the focal length unknown" if result.focal_prior == "dropped" else ""
+        console.print(
+            f"mapping left photos out: mapped again from an initial pair that may move along its view{unknown}"
+        )
     if result.unregistered:
         console.print(f"[yellow]not registered:[/] {', '.join(result.unregistered)}", highlight=False)
     if result.other_models:

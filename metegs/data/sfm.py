@@ -77,9 +77,12 @@ class SfmResult:
     mean_reprojection_error_px: float
     other_models: list[int] = field(default_factory=list)
     """Registered-view counts of the smaller models COLMAP also built (not written)."""
+    initial_pair: str = "default"
+    """How the kept model's first two views were chosen: "default" (COLMAP's checks) or "forward" (mapping stalled,
+    `RETRY_BELOW`; mapped again allowing a pair that moves along its view, `FORWARD_INIT_TRI_ANGLE_DEG`)."""
     focal_prior: str = "exif"
     """Where the kept model's focal length started: "exif" (the photos' EXIF, else COLMAP's guess), or "dropped"
-    (mapping from EXIF stalled, `RETRY_BELOW`; mapping with the focal length unknown registered more)."""
+    (mapping stalled both ways from EXIF; mapping with the focal length unknown registered more)."""
     timings_s: dict[str, float] = field(default_factory=dict)
     options: dict = field(default_factory=dict)
 
@@ -184,9 +187,22 @@ def _match(pycolmap, db: Path, count: int, opts: SfmOptions, progress: StageCall
     return matcher
 
 
-def _map(pycolmap, db: Path, images: Path, sparse: Path, count: int, opts: SfmOptions, progress: StageCallback):
-    """Incremental mapping; returns the reconstructions COLMAP built, largest first."""
+def _map(
+    pycolmap,
+    db: Path,
+    images: Path,
+    sparse: Path,
+    count: int,
+    opts: SfmOptions,
+    progress: StageCallback,
+    forward: bool = False,
+):
+    """Incremental mapping; returns the reconstructions COLMAP built, largest first. ``forward``: the initial pair
+    may move along its viewing direction, with a small triangulation angle (`FORWARD_INIT_TRI_ANGLE_DEG`)."""
     mapping = pycolmap.IncrementalPipelineOptions()
+    if forward:
+        mapping.mapper.init_max_forward_motion = 1.0
+        mapping.mapper.init_min_tri_angle = FORWARD_INIT_TRI_ANGLE_DEG
     mapping.num_threads = opts.num_threads
     mapping.random_seed = opts.seed
     relax = opts.min_inliers / 30.0  # relative to COLMAP's defaults
@@ -212,10 +228,16 @@ def _map(pycolmap, db: Path, images: Path, sparse: Path, count: int, opts: SfmOp
 
 
 RETRY_SEEDS = 4
-"""Mapping attempts (initial seeds) without the EXIF focal length when mapping with it stalls."""
+"""Mapping attempts (initial seeds) of each retry when mapping stalls."""
 RETRY_BELOW = 0.9
-"""Mapping with the EXIF focal length counts as stalled below this share of the photos registered (a few photos
-that match nothing do not make a large capture map five times)."""
+"""Mapping counts as stalled below this share of the photos registered (a few photos that match nothing do not make
+a large capture map again)."""
+FORWARD_INIT_TRI_ANGLE_DEG = 4.0
+"""Smallest triangulation angle of a retry's initial pair (COLMAP: 16°). Photos taken walking along a street or
+corridor look where they move: COLMAP's initial pair must not (``init_max_forward_motion`` 0.95) and needs 16°,
+so OpenSfM's 29-photo Lund street started from a pair whose focal length diverged (2 of 29 registered, 3 of 3
+seeds); allowed both, 27 of 29 from EXIF. With the focal length unknown instead it registered 29 of 29 as a
+broken model (the cameras turned 40° between two photos a step apart), so that retry comes last."""
 
 
 def _drop_focal_priors(pycolmap, db: Path) -> bool:
@@ -296,20 +318,24 @@ def run_sfm(
         t0 = time.perf_counter()
         work = tmp / "mapper"
         models = _map(pycolmap, db, staged_images, work, len(names), opts, progress)
-        focal_prior = "exif"
-        if _num_registered(models) < RETRY_BELOW * len(names) and _drop_focal_priors(pycolmap, db):
-            # a wrong EXIF focal length (a phone's crop, a zoom) marks true pairs as uncalibrated, and mapping
-            # can stall after its first views: map again with the focal length unknown from a few initial
-            # seeds, and keep the model that registers the most photos
+        how = {"initial_pair": "default", "focal_prior": "exif"}
+        # stalled: map again from a few seeds with a forward-moving initial pair allowed (a street walk), then with
+        # the focal length unknown as well (a wrong EXIF focal length, as a phone's crop or zoom writes, marks true
+        # pairs uncalibrated); keep the model that registers the most photos
+        for focal in ("exif", "dropped"):
+            if _num_registered(models) >= RETRY_BELOW * len(names):
+                break
+            if focal == "dropped" and not _drop_focal_priors(pycolmap, db):
+                break
             for attempt in range(RETRY_SEEDS):
-                retry_dir = tmp / f"mapper-no-focal-{attempt}"
+                retry_dir = tmp / f"mapper-forward-{focal}-{attempt}"
                 retry_opts = replace(opts, seed=opts.seed + attempt)
-                retry = _map(pycolmap, db, staged_images, retry_dir, len(names), retry_opts, progress)
+                retry = _map(pycolmap, db, staged_images, retry_dir, len(names), retry_opts, progress, forward=True)
                 if _num_registered(retry) > _num_registered(models):
                     shutil.rmtree(work, ignore_errors=True)
-                    models, work, focal_prior = retry, retry_dir, "dropped"
+                    models, work, how = retry, retry_dir, {"initial_pair": "forward", "focal_prior": focal}
                 else:
-                    shutil.rmtree(retry_dir)
+                    shutil.rmtree(retry_dir, ignore_errors=True)
                 if _num_registered(models) == len(names):
                     break
         timings["map"] = time.perf_counter() - t0
@@ -344,7 +370,7 @@ def run_sfm(
             num_points=best.num_points3D(),
             mean_reprojection_error_px=float(best.compute_mean_reprojection_error()),
             other_models=[rec.num_reg_images() for rec in models[1:]],
-            focal_prior=focal_prior,
+            **how,
             timings_s={k: round(v, 2) for k, v in timings.items()},
             options={**asdict(opts), "matcher": matcher, "masks": None if masks is None else str(masks)},
         )

@@ -170,30 +170,75 @@ def four_photos(tmp_path):
     return photos
 
 
-def test_mapping_that_leaves_photos_out_retries_without_the_exif_focal(four_photos, tmp_path, monkeypatch):
-    """A first mapping that registers nothing (as a wrong EXIF focal length can leave it) is retried with the
-    focal length unknown, and the retry's model is kept and said so."""
+def _count_mappings(monkeypatch, fails):
+    """Patch `run_sfm`'s mapping so that the calls for which ``fails(dropped)`` holds build nothing; returns the
+    lists of calls made (seed, forward) and of focal-length drops."""
     import metegs.data.sfm as sfm
 
     real_map, calls, dropped = sfm._map, [], []
 
-    def first_fails(*args, **kwargs):
-        calls.append(args[-2].seed)
-        return [] if len(calls) == 1 else real_map(*args, **kwargs)
+    def mapping(*args, forward=False):
+        calls.append((args[-2].seed, forward))
+        return [] if fails(len(calls), dropped) else real_map(*args, forward=forward)
 
     def drop(pycolmap, db):
         dropped.append(db)
         return True  # these photos carry no EXIF focal: count the call and go on
 
-    monkeypatch.setattr(sfm, "_map", first_fails)
+    monkeypatch.setattr(sfm, "_map", mapping)
     monkeypatch.setattr(sfm, "_drop_focal_priors", drop)
+    return calls, dropped
+
+
+def test_a_stalled_mapping_retries_with_a_forward_initial_pair(four_photos, tmp_path, monkeypatch):
+    """A first mapping that registers nothing (as COLMAP's initial pair can leave a street walk) is retried with a
+    forward-moving initial pair allowed, the EXIF focal kept; the retry's model is kept and said so."""
+    calls, dropped = _count_mappings(monkeypatch, lambda n, dropped: n == 1)
     opts = SfmOptions(num_threads=1, accurate_features=True, min_inliers=15)
     result = run_sfm(four_photos, tmp_path / "out", opts, masks=SCENE / "masks_8")
-    assert len(dropped) == 1 and calls[:2] == [0, 0]
-    assert result.focal_prior == "dropped" and len(result.registered) >= 3
+    assert calls[:2] == [(0, False), (0, True)] and not dropped
+    assert (result.initial_pair, result.focal_prior) == ("forward", "exif") and len(result.registered) >= 3
     record = json.loads((tmp_path / "out" / "process_images.json").read_text())
-    assert record["focal_prior"] == "dropped"
+    assert (record["initial_pair"], record["focal_prior"]) == ("forward", "exif")
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["images", "process_images.json", "sparse"]
+
+
+def test_mapping_that_stalls_from_exif_retries_without_the_focal(four_photos, tmp_path, monkeypatch):
+    """Where the forward retries stall too (from every seed), the EXIF focal is dropped and mapping retried."""
+    import metegs.data.sfm as sfm
+
+    calls, dropped = _count_mappings(monkeypatch, lambda n, dropped: not dropped)
+    opts = SfmOptions(num_threads=1, accurate_features=True, min_inliers=15)
+    result = run_sfm(four_photos, tmp_path / "out", opts, masks=SCENE / "masks_8")
+    retries = [(seed, True) for seed in range(sfm.RETRY_SEEDS)]
+    assert len(dropped) == 1 and calls[: 2 + sfm.RETRY_SEEDS] == [(0, False), *retries, (0, True)]
+    assert (result.initial_pair, result.focal_prior) == ("forward", "dropped") and len(result.registered) >= 3
+
+
+def test_a_forward_mapping_relaxes_colmaps_initial_pair_checks(tmp_path):
+    """forward=True lets the initial pair move along its view with a small angle; the default keeps COLMAP's."""
+    import pycolmap
+
+    import metegs.data.sfm as sfm
+
+    seen = []
+
+    class Recorder:
+        IncrementalPipelineOptions = pycolmap.IncrementalPipelineOptions
+
+        @staticmethod
+        def incremental_mapping(db, images, sparse, options, **callbacks):
+            seen.append((options.mapper.init_max_forward_motion, options.mapper.init_min_tri_angle))
+            return {}
+
+    for forward in (False, True):
+        sfm._map(Recorder, tmp_path / "db", tmp_path, tmp_path / "sparse", 4, SfmOptions(), print, forward=forward)
+    default = pycolmap.IncrementalPipelineOptions().mapper
+    assert seen == [
+        (default.init_max_forward_motion, default.init_min_tri_angle),
+        (1.0, sfm.FORWARD_INIT_TRI_ANGLE_DEG),
+    ]
+    assert default.init_max_forward_motion < 1.0 and default.init_min_tri_angle > sfm.FORWARD_INIT_TRI_ANGLE_DEG
 
 
 def test_mapping_that_registers_enough_photos_is_not_repeated(four_photos, tmp_path, monkeypatch):
@@ -204,4 +249,5 @@ def test_mapping_that_registers_enough_photos_is_not_repeated(four_photos, tmp_p
     monkeypatch.setattr(sfm, "_drop_focal_priors", lambda pycolmap, db: dropped.append(db) or True)
     opts = SfmOptions(num_threads=1, accurate_features=True, min_inliers=15)
     result = run_sfm(four_photos, tmp_path / "out", opts, masks=SCENE / "masks_8")
-    assert len(result.registered) >= sfm.RETRY_BELOW * 4 and not dropped and result.focal_prior == "exif"
+    assert len(result.registered) >= sfm.RETRY_BELOW * 4 and not dropped
+    assert (result.initial_pair, result.focal_prior) == ("default", "exif")
