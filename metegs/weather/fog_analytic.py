@@ -49,6 +49,19 @@ def fog_composite(
     return color * t + airlight * (1.0 - alpha[..., None] * t)
 
 
+def height_profile(
+    k_per_m: torch.Tensor, camera_height_m: torch.Tensor, rise: torch.Tensor, distance_m: torch.Tensor
+) -> torch.Tensor:
+    """Optical depth of rays under β(h) = β·exp(−k·h) over that of a uniform β at the reference height h = 0:
+    exp(−k·h_c)·(1 − e^{−x})/x with x = k·u·d (``camera_height_m`` h_c of each ray's camera over the reference, m;
+    ``rise`` u, metres of height per metre of ray; ``distance_m`` d). All broadcast to one shape -> that shape."""
+    x = k_per_m * rise * distance_m
+    small = x.abs() < 1e-4
+    safe = torch.where(small, torch.ones_like(x), x)
+    mean_along = torch.where(small, 1.0 - x / 2.0, -torch.expm1(-safe) / safe)
+    return torch.exp((-k_per_m * camera_height_m).clamp(-20.0, 20.0)) * mean_along
+
+
 @dataclass
 class FogAnalyticConfig(WeatherModelConfig):
     """Analytic fog from the rendered depth (any rasteriser; no Gaussians)."""
@@ -230,18 +243,12 @@ class FogAnalytic(WeatherModel):
         return (up[0] * a[None, :] + up[1] * b[:, None] + up[2]) / rays
 
     def height_factor(self, rise: torch.Tensor, distance_m: torch.Tensor, view: int) -> torch.Tensor:
-        """[H, W] optical depth of each ray under the height profile over that of a uniform β at the reference
-        height: exp(−k·h_c)·(1 − e^{−x})/x with x = k·u·d (u ``rise`` [H, W], metres of height per metre of ray; d
-        ``distance_m`` [H, W]; h_c the camera's height over the reference, metres)."""
-        k = self.height_rate.to(distance_m) / 100.0
+        """[H, W] `height_profile` of view ``view``'s rays (u ``rise`` [H, W], d ``distance_m`` [H, W])."""
         camera_height = (
             self.scene.cameras.centers[view].to(distance_m) @ self.up.to(distance_m)
         ) - self.reference_height
-        x = k * rise * distance_m
-        small = x.abs() < 1e-4
-        safe = torch.where(small, torch.ones_like(x), x)
-        mean_along = torch.where(small, 1.0 - x / 2.0, -torch.expm1(-safe) / safe)
-        return torch.exp((-k * camera_height * self.scene.metres_per_unit).clamp(-20.0, 20.0)) * mean_along
+        k = self.height_rate.to(distance_m) / 100.0
+        return height_profile(k, camera_height * self.scene.metres_per_unit, rise, distance_m)
 
     def prior(self, view: int) -> torch.Tensor | None:
         """record_prior_weight · mean((ln β − ln β_θ)²) when the record prior is on, plus patches_weight · mean of the
