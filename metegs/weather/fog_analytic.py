@@ -50,16 +50,21 @@ def fog_composite(
 
 
 def height_profile(
-    k_per_m: torch.Tensor, camera_height_m: torch.Tensor, rise: torch.Tensor, distance_m: torch.Tensor
+    k_per_m: torch.Tensor,
+    camera_height: torch.Tensor,
+    rise: torch.Tensor,
+    distance_m: torch.Tensor,
+    metres_per_unit: float = 1.0,
 ) -> torch.Tensor:
     """Optical depth of rays under β(h) = β·exp(−k·h) over that of a uniform β at the reference height h = 0:
-    exp(−k·h_c)·(1 − e^{−x})/x with x = k·u·d (``camera_height_m`` h_c of each ray's camera over the reference, m;
-    ``rise`` u, metres of height per metre of ray; ``distance_m`` d). All broadcast to one shape -> that shape."""
+    exp(−k·h_c)·(1 − e^{−x})/x with x = k·u·d (``camera_height`` h_c of each ray's camera over the reference, in
+    units of ``metres_per_unit`` metres; ``rise`` u, metres of height per metre of ray; ``distance_m`` d). All
+    broadcast to one shape -> that shape."""
     x = k_per_m * rise * distance_m
     small = x.abs() < 1e-4
     safe = torch.where(small, torch.ones_like(x), x)
     mean_along = torch.where(small, 1.0 - x / 2.0, -torch.expm1(-safe) / safe)
-    return torch.exp((-k_per_m * camera_height_m).clamp(-20.0, 20.0)) * mean_along
+    return torch.exp((-k_per_m * camera_height * metres_per_unit).clamp(-20.0, 20.0)) * mean_along
 
 
 @dataclass
@@ -248,7 +253,7 @@ class FogAnalytic(WeatherModel):
             self.scene.cameras.centers[view].to(distance_m) @ self.up.to(distance_m)
         ) - self.reference_height
         k = self.height_rate.to(distance_m) / 100.0
-        return height_profile(k, camera_height * self.scene.metres_per_unit, rise, distance_m)
+        return height_profile(k, camera_height, rise, distance_m, self.scene.metres_per_unit)
 
     def prior(self, view: int) -> torch.Tensor | None:
         """record_prior_weight · mean((ln β − ln β_θ)²) when the record prior is on, plus patches_weight · mean of the
