@@ -127,14 +127,11 @@ def point_observations(
     )
 
 
-def fit_medium(
-    obs: PointObservations, beta_start: float, layered: bool = True, steps: int = FIT_STEPS, seed: int = 0
-) -> MediumFit:
+def fit_medium(obs: PointObservations, beta_start: float, layered: bool = True, steps: int = FIT_STEPS) -> MediumFit:
     """Robust least squares (Charbonnier) of I = J·t + A·(1 − t) over ``obs``, t = exp(−β·d·`height_profile`), for β
     (from ``beta_start``), the height rate (0 unless ``layered``), A and one J per point."""
-    torch.manual_seed(seed)
     points = int(obs.point.max()) + 1 if len(obs) else 0
-    log_beta = torch.tensor(float(torch.log(torch.tensor(beta_start))), requires_grad=True)
+    log_beta = torch.tensor(math.log(beta_start), requires_grad=True)
     height_rate = torch.zeros((), requires_grad=layered)
     airlight_logit = torch.full((3,), 1.5, requires_grad=True)
     scene_logit = torch.zeros((points, 3), requires_grad=True)
