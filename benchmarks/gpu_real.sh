@@ -12,7 +12,7 @@ T0=$(date +%s); DEADLINE_S=${DEADLINE_S:-545}
 DEVICE=${DEVICE:-cuda}; STEPS=${STEPS:-3000}
 SCENES=${SCENES:-ethiopianhead fox lund}
 CONDS=${CONDS:-rain+fog-ind fog-200-ind rain-heavy-ind rain-light-ind}  # the independent family first
-METHODS=${METHODS:-3dgs-clean 3dgs metegs-blind metegs-blind-nodcp metegs-full}
+METHODS=${METHODS:-3dgs-clean 3dgs metegs-blind metegs-blind-stop metegs-blind-nodcp metegs-full}
 if [ "$DEVICE" = cuda ]; then  # installed once per machine: reinstalling renews gsplat's sources, which rebuilds it (75 s)
   [ -d /tmp/site/gsplat ] || python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || { echo "wheels failed"; exit 1; }
   export PYTHONPATH=/tmp/site:$PWD
@@ -42,7 +42,8 @@ pair() {  # pair SCENE CONDITION: one suite process for the condition's rows (lo
 export -f pair bench left; export CFG METHODS OUT T0 DEADLINE_S PY
 # the clean runs first (each scene's conditions take their depth from it), then the (scene, condition) pairs, at most
 # JOBS suite processes at a time: twelve at once on one H200 left every run unfinished after 350 s, and one 3DGS
-# run shared with eleven others took 152 s against 28 s shared with two
+# run shared with eleven others took 152 s against 28 s shared with two; with five, 3DGS took 52-80 s and blind
+# MeteGS 185-229 s (3000 steps), so one 545 s call finishes about five (scene, condition) pairs' first two rows
 ( for s in $SCENES; do
     bench suite $CFG --only-scenes $s --only-methods 3dgs-clean > "$OUT/logs/clean-$s.log" 2>&1 &
   done; wait; echo "clean runs ended at $(( $(date +%s) - T0 )) s"

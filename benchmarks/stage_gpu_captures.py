@@ -6,7 +6,8 @@ and Lund at half their size (the training size is the same: both train at their 
 each world turned so that metegs's own up estimate is +Z, sparse points triangulated here where the capture has none
 (so the GPU runs start from the same kind of points as the CPU runs), the two met records, and ``real-gpu.yaml``:
 real.yaml's grid on CUDA without the rows the GPU image cannot run (the 2D restoration needs OpenCV's contrib module),
-plus the ablation without the dark-channel prior. Then, on the machine, ``bash benchmarks/gpu_real.sh`` runs it.
+plus two ablations of blind MeteGS (without the dark-channel prior; densification stopped at 20 % of the run).
+Then, on the machine, ``bash benchmarks/gpu_real.sh`` runs it.
 
     python benchmarks/stage_gpu_captures.py        # reads $METEGS_CAPTURES and ../shared
 """
@@ -117,7 +118,16 @@ def grid_config(real: dict) -> dict:
         "label": "MeteGS (blind) without the dark-channel prior",
         "overrides": {**blind["overrides"], "dark_channel": {"mode": "off"}},
     }
-    first = ("3dgs-clean", "3dgs", "metegs-blind")  # a suite process runs its rows in this order: cheap, then key
+    early_stop = {  # the lead of the Lund rain + fog runs: densification stops at a fifth of the steps
+        **blind,
+        "name": "metegs-blind-stop",
+        "group": "ablation",
+        "label": "MeteGS (blind), densification stopped at 20 % of the steps",
+        "overrides": {**blind["overrides"], "densify": {"refine_stop": 0.2}},
+    }
+    # a suite process runs its rows in this order: cheap, then key
+    first = ("3dgs-clean", "3dgs", "metegs-blind", "metegs-blind-stop")
+    methods = [*methods, early_stop]
     methods.sort(key=lambda m: first.index(m["name"]) if m["name"] in first else len(first))
     config["methods"] = [*methods, ablation]
     config.pop("checks", None)
