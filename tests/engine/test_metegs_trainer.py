@@ -340,13 +340,24 @@ def test_light_rain_switches_off_the_gtn_and_the_robust_mask(tmp_path):
     assert heavy.robust_from is not None and heavy.decisions["robust mask"].startswith("on")
 
 
-def test_opacity_resets_stay_on_with_the_gtn_where_it_rains(tmp_path):
+def test_opacity_resets_stay_on_with_the_gtn_where_it_rains_under_thin_fog(tmp_path):
     """Resets remove the Gaussians that fitted single photos' streaks (measured on two real captures): with rain
-    the GTN keeps the plain 3DGS schedule; under fog alone they only cost Gaussians, and are off."""
+    the GTN keeps the plain 3DGS schedule; under fog alone, or fog dense at the scene's depth (visibility under 3×
+    it) over an SfM cloud, they only cost Gaussians, and are off."""
     from metegs.densify.adc import AdaptiveDensityControl
+    from metegs.engine.metegs_trainer import DENSE_OPTICAL_DEPTH
 
     rain = tiny_metegs(tmp_path / "rain", max_steps=3000, densify=ADCConfig()).setup()  # 20 mm/h and 400 m
     assert rain.gtn is not None and "opacity reset" not in rain.decisions
+    assert 0 < rain.medium_depths < DENSE_OPTICAL_DEPTH
+    dense = ConditionsConfig(precip_mm_h=20.0, visibility_m=100.0, wind_speed_m_s=4.0, wind_dir_deg=90.0)
+    storm = tiny_metegs(tmp_path / "storm", max_steps=3000, densify=ADCConfig(), conditions=dense).setup()
+    assert storm.medium_depths >= DENSE_OPTICAL_DEPTH and storm.densifier.reset_every == 0
+    assert storm.decisions["opacity reset"].startswith("off: the medium's optical depth")
+    # from random points resets clear their floaters, also in dense fog
+    model = replace(storm.config.model, random_init=True)
+    floaters = tiny_metegs(tmp_path / "random", max_steps=3000, densify=ADCConfig(), conditions=dense, model=model)
+    assert "opacity reset" not in floaters.setup().decisions
     plain = AdaptiveDensityControl(ADCConfig(), 3000, rain.extent, len(rain.dataset.train_indices))
     assert rain.densifier.reset_every == plain.reset_every > 0
     fog = ConditionsConfig(precip_mm_h=0.0, visibility_m=300.0, metres_per_unit=100.0)
