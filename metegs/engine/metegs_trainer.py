@@ -8,7 +8,6 @@ Evaluation, renders and export use the clean branch only.
 
 from __future__ import annotations
 
-import math
 from dataclasses import replace
 from pathlib import Path
 
@@ -20,6 +19,7 @@ from metegs.engine.trainer import StepRender, Trainer
 from metegs.errors import ConfigError
 from metegs.losses.dark_channel import dark_channel_loss
 from metegs.losses.robust import inlier_weights
+from metegs.meteo.physics import LN20
 from metegs.models.gtn import may_be_visible
 from metegs.render import RenderSettings
 from metegs.weather.base import WeatherModel, WeatherScene, model_seed
@@ -39,7 +39,7 @@ def rain_phrase(rain) -> str:
     )
 
 
-DENSE_OPTICAL_DEPTH = math.log(1 / 0.05) / 3
+DENSE_OPTICAL_DEPTH = LN20 / 3
 """Optical depth β·d above which fog is dense at depth d: its visibility (the meteorological optical range, where
 the contrast falls to 5 %) is at most 3× d. Opacity resets stay off there when the Gaussians start from an SfM
 cloud (blind, heavy rain and 200 m fog on the Lund street: 13.43 dB without them against 9.87 with them, 12.08
