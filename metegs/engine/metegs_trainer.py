@@ -71,7 +71,7 @@ class MeteGSTrainer(Trainer):
         self.use_clean = has_clean and c.clean_supervision
         self.dehazing: list[WeatherModel] = []
         """The media the dark-channel prior holds (`_decide_dark_channel`)."""
-        self.medium_depths = 0.0
+        self.medium_optical_depth = 0.0
         """Largest optical depth β·d of a weather model's medium at the scene's typical depth d (0: none)."""
         self.weather_models: list[WeatherModel] = self._build_weather() if c.weather_branch else []
         if not c.weather_branch:
@@ -134,7 +134,7 @@ class MeteGSTrainer(Trainer):
                 if depth_m is None:
                     depth_m = typical_depth_m(ds.cameras, self.scene.points, scene.metres_per_unit)
                 veil = veil_fraction(beta, depth_m)
-                self.medium_depths = max(self.medium_depths, beta * depth_m)
+                self.medium_optical_depth = max(self.medium_optical_depth, beta * depth_m)
                 if veil < VISIBLE_CONTRAST_LOSS:
                     self.decide(
                         f"weather {name}",
@@ -308,9 +308,9 @@ class MeteGSTrainer(Trainer):
         if self.gtn is not None and rain.intensity_class in LIGHT_OR_NONE:
             why = f"{rain_phrase(rain)} leaves no streaks for resets to clear, and under the fog a reset costs "
             why += "Gaussians that its dimmed gradients hardly regrow"
-        elif self.medium_depths >= DENSE_OPTICAL_DEPTH and not self.random_init:
+        elif self.medium_optical_depth >= DENSE_OPTICAL_DEPTH and not self.random_init:
             why = (
-                f"the medium's optical depth at the scene's typical depth is {self.medium_depths:.2f} (visibility under "
+                f"the medium's optical depth at the scene's typical depth is {self.medium_optical_depth:.2f} (visibility under "
                 "3x that depth) and the Gaussians started from an SfM cloud: a reset would cost its geometry, which "
                 "the fog-dimmed gradients hardly regrow, while what does regrow fits the rain"
             )

@@ -349,10 +349,10 @@ def test_opacity_resets_stay_on_with_the_gtn_where_it_rains_under_thin_fog(tmp_p
 
     rain = tiny_metegs(tmp_path / "rain", max_steps=3000, densify=ADCConfig()).setup()  # 20 mm/h and 400 m
     assert rain.gtn is not None and "opacity reset" not in rain.decisions
-    assert 0 < rain.medium_depths < DENSE_OPTICAL_DEPTH
+    assert 0 < rain.medium_optical_depth < DENSE_OPTICAL_DEPTH
     dense = ConditionsConfig(precip_mm_h=20.0, visibility_m=100.0, wind_speed_m_s=4.0, wind_dir_deg=90.0)
     storm = tiny_metegs(tmp_path / "storm", max_steps=3000, densify=ADCConfig(), conditions=dense).setup()
-    assert storm.medium_depths >= DENSE_OPTICAL_DEPTH and storm.densifier.reset_every == 0
+    assert storm.medium_optical_depth >= DENSE_OPTICAL_DEPTH and storm.densifier.reset_every == 0
     assert storm.decisions["opacity reset"].startswith("off: the medium's optical depth")
     # from random points resets clear their floaters, also in dense fog
     model = replace(storm.config.model, random_init=True)
