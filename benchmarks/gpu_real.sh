@@ -13,27 +13,14 @@ DEVICE=${DEVICE:-cuda}; STEPS=${STEPS:-3000}
 SCENES=${SCENES:-ethiopianhead fox lund}
 CONDS=${CONDS:-rain+fog-ind fog-200-ind rain-heavy-ind rain-light-ind}  # the independent family first
 METHODS=${METHODS:-3dgs-clean 3dgs metegs-blind metegs-blind-stop metegs-blind-nodcp metegs-full}
-if [ "$DEVICE" = cuda ]; then  # installed once per machine: reinstalling renews gsplat's sources, which rebuilds it (75 s)
-  [ -d /tmp/site/gsplat ] || python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || { echo "wheels failed"; exit 1; }
-  export PYTHONPATH=/tmp/site:$PWD
-  export TORCH_CUDA_ARCH_LIST=$(python3 -c "import torch; print('%d.%d' % torch.cuda.get_device_capability())")
-fi
 # the suite processes share the CPU cores: two OpenMP threads each, as spinning threads would stall the others
-export PYTHONUNBUFFERED=1 MAX_JOBS=$(nproc) TORCH_EXTENSIONS_DIR=/tmp/torch_ext OMP_NUM_THREADS=${OMP_NUM_THREADS:-2}
+export OMP_NUM_THREADS=${OMP_NUM_THREADS:-2}
 PY=${PY:-python3}
+source benchmarks/gpu_env.sh
 CFG=.gpu/real-gpu-run.yaml
 sed -e "s/device: cuda/device: $DEVICE/" -e "s/max_steps: 3000/max_steps: $STEPS/" -e "s/checkpoint_every: 1000/checkpoint_every: $STEPS/" .gpu/real-gpu.yaml > $CFG
 left() { echo $((DEADLINE_S - ($(date +%s) - T0))); }
 bench() { timeout "$(left)" $PY -c "import sys; from metegs.cli.bench import entrypoint; sys.argv[0] = 'metegs-bench'; entrypoint()" "$@"; }
-mkdir -p "$OUT/logs"
-{ nvidia-smi -L 2>/dev/null; $PY -c "import torch; print(torch.__version__, torch.cuda.is_available())"; } > "$OUT/logs/env.log" 2>&1
-if [ "$DEVICE" = cuda ]; then
-  timeout 200 $PY -c "
-import time; t = time.time()
-from metegs.render.gsplat_backend import load_gsplat
-g = load_gsplat(); print('gsplat', g.__version__, 'built in %.0f s' % (time.time() - t))" > "$OUT/logs/build.log" 2>&1
-  tail -n 3 "$OUT/logs/build.log"
-fi
 echo "runs from $(( $(date +%s) - T0 )) s"
 pair() {  # pair SCENE CONDITION: one suite process for the condition's rows (log names avoid '+', refused on return)
   bench suite $CFG --only-scenes "$1" --only-conditions "$2" --only-methods $METHODS > "$OUT/logs/$1-${2//+/-and-}.log" 2>&1

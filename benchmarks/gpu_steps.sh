@@ -10,25 +10,13 @@
 # deadline stops still leaves its curve: the newest checkpoint's history is written as history-<run>.json.
 # Local dry test: DEVICE=cpu SCALE=100 PY=python bash benchmarks/gpu_steps.sh   (steps divided by SCALE)
 set -u
-OUT=${OUT:-/tmp/gpu-out}; mkdir -p "$OUT/logs"
+OUT=${OUT:-/tmp/gpu-out}
 T0=$(date +%s); DEADLINE_S=${DEADLINE_S:-540}
 DEVICE=${DEVICE:-cuda}; SCALE=${SCALE:-1}; PY=${PY:-python3}
 DATA=${DATA:-.gpu/data/lund}; RUNS=/tmp/steps-runs
-if [ "$DEVICE" = cuda ]; then
-  [ -d /tmp/site/gsplat ] || python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || { echo "wheels failed"; exit 1; }
-  export PYTHONPATH=/tmp/site:$PWD
-  export TORCH_CUDA_ARCH_LIST=$(python3 -c "import torch; print('%d.%d' % torch.cuda.get_device_capability())")
-fi
-export PYTHONUNBUFFERED=1 MAX_JOBS=$(nproc) TORCH_EXTENSIONS_DIR=/tmp/torch_ext OMP_NUM_THREADS=${OMP_NUM_THREADS:-4}
+export OMP_NUM_THREADS=${OMP_NUM_THREADS:-4}
+source benchmarks/gpu_env.sh
 left() { echo $((DEADLINE_S - ($(date +%s) - T0))); }
-{ nvidia-smi -L 2>/dev/null; $PY -c "import torch; print(torch.__version__, torch.cuda.is_available())"; } > "$OUT/logs/env.log" 2>&1
-if [ "$DEVICE" = cuda ]; then
-  timeout 200 $PY -c "
-import time; t = time.time()
-from metegs.render.gsplat_backend import load_gsplat
-g = load_gsplat(); print('gsplat', g.__version__, 'built in %.0f s' % (time.time() - t))" > "$OUT/logs/build.log" 2>&1
-  tail -n 2 "$OUT/logs/build.log"
-fi
 echo "runs from $(( $(date +%s) - T0 )) s"
 PLAN=${PLAN:-"30000 0 default
 2000 0 default

@@ -23,13 +23,12 @@ import numpy as np
 
 def write_peer_input(run_dir: Path, out: Path) -> int:
     """The training views of ``run_dir`` as a nerfstudio project in ``out``; returns the number of views."""
-    from metegs.cameras import opencv_to_opengl
     from metegs.data.config import auto_max_side
     from metegs.data.dataset import Dataset
     from metegs.data.images import save_image
     from metegs.data.parsers.base import parse_scene
     from metegs.engine.run import load_run_config, run_folder
-    from metegs.synth.writers import write_ply_points
+    from metegs.synth.writers import pinhole_frames, write_ply_points
 
     run_dir = run_folder(run_dir)
     config = load_run_config(run_dir)
@@ -43,31 +42,17 @@ def write_peer_input(run_dir: Path, out: Path) -> int:
         raise SystemExit(f"{run_dir}: the run trained at {metrics['image_size']}, its config gives {size}")
     if not data.test_indices:
         raise SystemExit(f"{run_dir}: the run has no test views; a peer trained on all views cannot be scored")
-    cams = data.cameras
-    c2w = opencv_to_opengl(cams.camera_to_worlds.double()).numpy()
+    train = data.train_indices
+    files = [f"images/{i:03d}_{Path(data.names[i]).stem}.png" for i in train]
     (out / "images").mkdir(parents=True, exist_ok=True)
-    frames = []
-    for i in data.train_indices:
-        file = f"images/{i:03d}_{Path(data.names[i]).stem}.png"
+    for i, file in zip(train, files, strict=True):
         save_image(out / file, data.images[i].numpy())
-        frames.append(
-            {
-                "file_path": file,
-                "transform_matrix": c2w[i].tolist(),
-                "w": int(cams.width[i]),
-                "h": int(cams.height[i]),
-                "fl_x": float(cams.fx[i]),
-                "fl_y": float(cams.fy[i]),
-                "cx": float(cams.cx[i]),
-                "cy": float(cams.cy[i]),
-            }
-        )
-    meta = {"camera_model": "PINHOLE", "frames": frames}
+    meta = {"camera_model": "PINHOLE", "frames": pinhole_frames(data.cameras[train].to("cpu"), files)}
     if scene.points is not None and len(scene.points):
         write_ply_points(out / "points.ply", np.asarray(scene.points), scene.point_colors)
         meta["ply_file_path"] = "points.ply"
     (out / "transforms.json").write_text(json.dumps(meta, indent=1) + "\n")
-    return len(frames)
+    return len(files)
 
 
 def main() -> None:

@@ -27,7 +27,7 @@ from pathlib import Path, PurePosixPath
 import cv2
 import numpy as np
 
-from metegs.cameras import opencv_to_opengl
+from metegs.cameras import Cameras, opencv_to_opengl
 from metegs.config import user_cache
 from metegs.data.parsers.clean import clean_relative_path
 from metegs.data.scene import SceneData
@@ -154,19 +154,8 @@ class DatasetWriter:
     def _write_nerfstudio_from_memory(self, depths: list[np.ndarray] | None) -> None:
         scene = self.scene
         cams = scene.cameras
-        c2w_gl = opencv_to_opengl(cams.camera_to_worlds.double()).numpy()
         frames = []
-        for i in range(len(scene)):
-            frame = {
-                "file_path": self.image_rel[i],
-                "transform_matrix": [[float(x) for x in row] for row in c2w_gl[i]],
-                "fl_x": float(cams.fx[i]),
-                "fl_y": float(cams.fy[i]),
-                "cx": float(cams.cx[i]),
-                "cy": float(cams.cy[i]),
-                "w": int(cams.width[i]),
-                "h": int(cams.height[i]),
-            }
+        for i, frame in enumerate(pinhole_frames(cams, self.image_rel)):
             if depths is not None:
                 rel = f"depths/{Path(self.image_rel[i]).stem}.npy"
                 path = self.root / rel
@@ -203,6 +192,25 @@ class DatasetWriter:
             write_ply_points(self.root / "points.ply", scene.points, scene.point_colors)
             meta["ply_file_path"] = "points.ply"
         (self.root / "transforms.json").write_text(json.dumps(meta, indent=1) + "\n")
+
+
+def pinhole_frames(cameras: Cameras, files: list[str]) -> list[dict]:
+    """One nerfstudio frame per view of ``cameras`` (OpenCV convention, as metegs holds them): ``files[i]`` as its
+    image, the camera-to-world in OpenGL camera axes and the PINHOLE intrinsics of its size."""
+    c2w_gl = opencv_to_opengl(cameras.camera_to_worlds.double()).numpy()
+    return [
+        {
+            "file_path": file,
+            "transform_matrix": [[float(x) for x in row] for row in c2w_gl[i]],
+            "fl_x": float(cameras.fx[i]),
+            "fl_y": float(cameras.fy[i]),
+            "cx": float(cameras.cx[i]),
+            "cy": float(cameras.cy[i]),
+            "w": int(cameras.width[i]),
+            "h": int(cameras.height[i]),
+        }
+        for i, file in enumerate(files)
+    ]
 
 
 def write_ply_points(path: Path, points: np.ndarray, colors: np.ndarray | None) -> None:

@@ -1,0 +1,19 @@
+# Sourced by the scripts for a lent GPU machine (gpu_real.sh, gpu_steps.sh): with DEVICE=cuda, installs the carried
+# wheels (.whl/) once per machine, as reinstalling renews gsplat's sources, which rebuilds it (75 s), and points
+# Python at them; logs the machine to $OUT/logs/env.log and builds gsplat's kernels ($OUT/logs/build.log).
+# Expects DEVICE, OUT and PY; exits when the wheels cannot be installed.
+mkdir -p "$OUT/logs"
+if [ "$DEVICE" = cuda ]; then
+  [ -d /tmp/site/gsplat ] || python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || { echo "wheels failed"; exit 1; }
+  export PYTHONPATH=/tmp/site:$PWD
+  export TORCH_CUDA_ARCH_LIST=$(python3 -c "import torch; print('%d.%d' % torch.cuda.get_device_capability())")
+fi
+export PYTHONUNBUFFERED=1 MAX_JOBS=$(nproc) TORCH_EXTENSIONS_DIR=/tmp/torch_ext
+{ nvidia-smi -L 2>/dev/null; $PY -c "import torch; print(torch.__version__, torch.cuda.is_available())"; } > "$OUT/logs/env.log" 2>&1
+if [ "$DEVICE" = cuda ]; then
+  timeout 200 $PY -c "
+import time; t = time.time()
+from metegs.render.gsplat_backend import load_gsplat
+g = load_gsplat(); print('gsplat', g.__version__, 'built in %.0f s' % (time.time() - t))" > "$OUT/logs/build.log" 2>&1
+  tail -n 3 "$OUT/logs/build.log"
+fi
