@@ -170,6 +170,14 @@ def test_checks_and_table_marks():
     assert "**FAIL**" in md and "some fail" in md
 
 
+def test_a_suite_of_clean_photo_runs_only_gets_its_table():
+    results = {**_results(), "conditions": {}, "checks": []}
+    results["runs"] = [r for r in results["runs"] if r["condition"] is None]
+    results["runs"].append({**results["runs"][0], "method": "a", "psnr": 28.0, "oracle": False})
+    md = markdown_report(results)
+    assert "### synthetic / clean photos" in md and "| a | 28.00 | 0.9500 |" in md and "*clean (oracle)* | 30.00" in md
+
+
 def test_curves_plot_is_a_png():
     png = line_chart_png([Series("a", [0, 1, 2], [10, 12, 13]), Series("b", [0, 3], [9, 14], dashed=True)], "t")
     img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
