@@ -49,7 +49,7 @@ for run in sorted(p for p in runs.glob("*/3dgs/*") if p.is_dir()):
     m = run / "metrics.json"
     if m.is_file():
         d = json.loads(m.read_text())
-        (out / f"metrics-{run.name}.json").write_text(json.dumps({k: v for k, v in d.items() if k != "per_view"} | {"per_view": d.get("per_view")}, indent=1))
+        (out / f"metrics-{run.name}.json").write_text(json.dumps(d, indent=1))
         print(run.name, "final", round(d["psnr"], 2), round(d["ssim"], 3), d["num_gaussians"], d["train_seconds"])
         hist = d["history"]
     else:
