@@ -2,27 +2,13 @@
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import torch
 
-SCRIPT = Path(__file__).resolve().parents[2] / "benchmarks" / "medium_at_points.py"
 
-
-def load_script():
-    spec = importlib.util.spec_from_file_location("medium_at_points", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # its dataclasses look their module up
-    spec.loader.exec_module(module)
-    return module
-
-
-def test_the_fit_recovers_a_layered_medium_from_point_colours():
+def test_the_fit_recovers_a_layered_medium_from_point_colours(benchmark_script):
     """200 points seen from 10 distances each (20-200 m, cameras 0-30 m over their mean) through β 0.01/m thinning
     with a 40 m scale height under airlight (0.8, 0.85, 0.9); a tenth of the observations brightened as by streaks."""
-    m = load_script()
+    m = benchmark_script("medium_at_points")
     g = torch.Generator().manual_seed(0)
     points, views = 200, 10
     point = torch.arange(points).repeat_interleave(views)

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -14,15 +12,7 @@ from metegs.bench.suite_config import load_suite
 REPO = Path(__file__).resolve().parents[2]
 
 
-def load_script():
-    spec = importlib.util.spec_from_file_location("peer_input", REPO / "benchmarks" / "peer_input.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
-
-
-def test_the_peer_input_holds_the_runs_training_views_as_it_loaded_them(tmp_path):
+def test_the_peer_input_holds_the_runs_training_views_as_it_loaded_them(tmp_path, benchmark_script):
     from metegs.data.config import DatasetConfig, SyntheticSceneConfig
     from metegs.data.dataset import Dataset
     from metegs.data.images import load_image
@@ -35,7 +25,8 @@ def test_the_peer_input_holds_the_runs_training_views_as_it_loaded_them(tmp_path
     trainer = cfg.setup()
     trainer.train()
     out = tmp_path / "peer"
-    assert load_script().write_peer_input(trainer.run_dir / "config.yml", out) == len(trainer.dataset.train_indices)
+    written = benchmark_script("peer_input").write_peer_input(trainer.run_dir / "config.yml", out)
+    assert written == len(trainer.dataset.train_indices)
 
     peer = parse_scene(out, None, DatasetConfig(downscale=1))  # read back as nerfstudio, every view for training
     run = trainer.dataset
