@@ -15,7 +15,8 @@ METRIC_KEYS = ("psnr", "ssim", "lpips", "streak_energy", "contrast_ratio", "num_
 
 
 def baseline_config(config: TrainConfig) -> TrainConfig:
-    """Plain `3dgs` with the run's data, schedule, seed and hardware choices (no weather, no degrading)."""
+    """Plain `3dgs` with the run's data, schedule, seed and hardware choices (no weather, no degrading) and its
+    per-view exposure choice, so both take the photos' tones the same way."""
     from metegs.registry import registry
 
     base = registry("method").get("3dgs")()
@@ -29,6 +30,7 @@ def baseline_config(config: TrainConfig) -> TrainConfig:
         "device",
         "threads",
         "background",
+        "view_exposure",
         "eval_every",
         "checkpoint_every",
         "save_renders",

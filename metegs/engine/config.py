@@ -85,6 +85,10 @@ class TrainConfig(InstantiateConfig):
     layers, heterogeneous fog, blurred drops; made without them, so the method cannot fit its own generator)."""
     conditions: ConditionsConfig = field(default_factory=ConditionsConfig)
     """The weather of the capture (met record and time, or explicit values)."""
+    view_exposure: Literal["auto", "on", "off"] = "auto"
+    """Learn a gain and an offset per colour channel for each training photo (exposure, white balance), averaging
+    to one and zero, so no photo's tone is baked into the scene; auto: on for photos, off for rendered scenes
+    (the built-in one, Blender), whose views share one exposure."""
     background: Literal["black", "white", "random"] = "black"
     """Background colour behind the Gaussians during training (evaluation uses black, or white for 'white')."""
     eval_every: Annotated[float, FRACTION] = 0.25

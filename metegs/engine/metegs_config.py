@@ -5,7 +5,7 @@ from __future__ import annotations
 import dataclasses
 import warnings
 from dataclasses import dataclass, field
-from typing import Annotated, TypeVar
+from typing import Annotated, Literal, TypeVar
 
 from metegs.densify.adc import ADCConfig
 from metegs.densify.depth_prune import DepthPruneConfig
@@ -61,6 +61,9 @@ class MeteGSConfig(TrainConfig):
     """Gaussian Transformation Network of the weather branch."""
     perceptual: PerceptualLossConfig = field(default_factory=PerceptualLossConfig)
     """Perceptual loss of the clean branch (backbone and layers)."""
+    view_exposure: Literal["auto", "on", "off"] = "off"
+    """Per-view gains and offsets of the photos' tone (see 3dgs); off for MeteGS until measured beside its fog,
+    whose per-view tone they would compete with (the comparison's 3dgs run follows this choice)."""
     densify: ADCConfig = field(default_factory=lambda: ADCConfig(prune_opacity=0.005))
     """Densification; pruning keeps Deblurring-3DGS's base threshold 0.005, which depth-aware pruning lowers
     for far Gaussians (3dgs's 0.1 costs blind MeteGS 0.9 dB on the default run)."""

@@ -362,10 +362,10 @@ class MeteGSTrainer(Trainer):
         return render_with_weather(self.rasterizer, scene, self.weather_models, index, camera, settings)
 
     def photo_render(self, index: int, background: torch.Tensor) -> StepRender:
-        """The weather branch: the scene through the GTN with the weather, judged by the photo."""
+        """The weather branch: the scene through the GTN with the weather, as photographed, judged by the photo."""
         weather = self.render_weather(index, background, training=True)
         # densification follows the photo fit only: weather Gaussians excluded
-        return StepRender(weather.rgb, weather.out, weather.num_scene)
+        return StepRender(self.as_photographed(weather.rgb, index), weather.out, weather.num_scene)
 
     def step_loss(
         self, index: int, background: torch.Tensor, render: StepRender, target: torch.Tensor, stats: dict[str, float]

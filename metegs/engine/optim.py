@@ -29,6 +29,8 @@ class OptimConfig:
     """Learning rate of the log-scales."""
     quats_lr: Annotated[float, NON_NEGATIVE] = 1e-3
     """Learning rate of the rotations."""
+    exposure_lr: Annotated[float, POSITIVE] = 1e-3
+    """Learning rate of the training views' gains and offsets (`view_exposure`)."""
     eps: Annotated[float, POSITIVE] = 1e-15
     """Adam epsilon."""
 

@@ -31,15 +31,19 @@ from metegs.engine.checkpoint import (
 )
 from metegs.engine.config import TrainConfig
 from metegs.engine.init import random_points_in_view_overlap, scene_extent
-from metegs.engine.optim import make_optimizers, means_lr_at
+from metegs.engine.optim import adam, make_optimizers, means_lr_at
 from metegs.engine.progress import TrainProgress
 from metegs.errors import ConfigError, DataError, Interrupted
 from metegs.files import atomic_write_text, write_result
 from metegs.gaussians.model import GaussianModel
 from metegs.meteo import Theta
+from metegs.models.exposure import ViewExposure
 from metegs.render import RenderOutput, RenderSettings, make_rasterizer
 from metegs.render.cpu_backend import thread_split, thread_split_counts
 from metegs.render.select import resolve_backend
+
+RENDERED_PARSERS = ("synthetic", "blender")
+"""Parsers of rendered scenes, whose views share one exposure (`view_exposure` auto leaves them as they are)."""
 
 
 def resolve_device(name: str) -> torch.device:
@@ -158,6 +162,7 @@ class Trainer:
         else:
             self.model = self._initial_model()
         self.optimizers = make_optimizers(self.model.params, config.optim, self.extent)
+        self.exposure, self.exposure_optimizer = self._make_exposure()
         self.loss_fn = config.loss.setup()
         self.step = 0
         self.history: list[dict] = []
@@ -339,6 +344,18 @@ class Trainer:
             raise DataError(self.scene.source, f"the initial Gaussians hold non-finite (NaN/Inf) {', '.join(bad)}")
         return model
 
+    def _make_exposure(self) -> tuple[ViewExposure | None, torch.optim.Optimizer | None]:
+        """The training views' gains and offsets and their optimiser, or (None, None) (`view_exposure`)."""
+        choice = self.config.view_exposure
+        rendered = self.scene.parser in RENDERED_PARSERS
+        if choice == "auto":
+            why = "a rendered scene: its views share one exposure" if rendered else "photos may differ in exposure"
+            self.decide("view_exposure", f"{'off' if rendered else 'on'} ({why}; --view-exposure on|off)")
+        if choice == "off" or (choice == "auto" and rendered):
+            return None, None
+        exposure = ViewExposure(self.dataset.train_indices, len(self.dataset.cameras), self.device)
+        return exposure, adam(exposure.parameters(), lr=self.config.optim.exposure_lr, eps=self.config.optim.eps)
+
     # --- one step ----------------------------------------------------------------------------------
     def background(self, training: bool) -> torch.Tensor:
         bg = self.config.background
@@ -412,9 +429,13 @@ class Trainer:
         return {**stats, **changes}
 
     def photo_render(self, index: int, background: torch.Tensor) -> StepRender:
-        """The render of training view ``index`` that its photo judges: the scene's here."""
+        """The render of training view ``index`` that its photo judges: the scene's, as photographed."""
         out = self.render(index, background=background)
-        return StepRender(out.rgb, out)
+        return StepRender(self.as_photographed(out.rgb, index), out)
+
+    def as_photographed(self, rgb: torch.Tensor, index: int) -> torch.Tensor:
+        """A render [H, W, 3] of training view ``index`` in its photo's tone (`view_exposure`; else as it is)."""
+        return rgb if self.exposure is None else self.exposure(rgb, index)
 
     def step_loss(
         self, index: int, background: torch.Tensor, render: StepRender, target: torch.Tensor, stats: dict[str, float]
@@ -424,8 +445,9 @@ class Trainer:
         return self.loss_fn(render.rgb, target)
 
     def step_optimizers(self) -> list[torch.optim.Optimizer]:
-        """Every optimiser a step updates: the Gaussians' here."""
-        return list(self.optimizers.values())
+        """Every optimiser a step updates: the Gaussians' and the views' exposure here."""
+        extra = [] if self.exposure_optimizer is None else [self.exposure_optimizer]
+        return [*self.optimizers.values(), *extra]
 
     def densify_step(self) -> dict[str, int]:
         """Densification after the optimisers (counts of what changed): the strategy's schedule here."""
@@ -613,6 +635,9 @@ class Trainer:
             "sh_degree": self.model.max_sh_degree,
             "optimizers": {k: o.state_dict() for k, o in self.optimizers.items()},
             "densifier": self.densifier.state_dict(),
+            "exposure": None
+            if self.exposure is None
+            else {"state": self.exposure.state_dict(), "optimizer": self.exposure_optimizer.state_dict()},
             "history": self.history,
             "train_seconds": self.train_seconds,
             "random_init": self.random_init,
@@ -645,6 +670,10 @@ class Trainer:
         for k, o in self.optimizers.items():
             o.load_state_dict(ckpt["optimizers"][k])
         self.densifier.load_state_dict(ckpt.get("densifier", {}))
+        saved = ckpt.get("exposure")
+        if self.exposure is not None and saved is not None:
+            self.exposure.load_state_dict(saved["state"])
+            self.exposure_optimizer.load_state_dict(saved["optimizer"])
         self.step = int(ckpt["step"])
         self.history = list(ckpt.get("history", []))
         self.train_seconds = float(ckpt.get("train_seconds", 0.0))

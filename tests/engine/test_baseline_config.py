@@ -12,3 +12,11 @@ def test_baseline_prunes_as_3dgs_not_as_the_metegs_run():
     assert base.densify.prune_opacity == gaussian_splatting().densify.prune_opacity == 0.1
     assert metegs_full().densify.prune_opacity == 0.005  # Deblurring-3DGS's base threshold t_p
     assert base.max_steps == run.max_steps and base.seed == run.seed
+
+
+def test_baseline_takes_the_photos_tones_as_the_run_does():
+    assert gaussian_splatting().view_exposure == "auto"  # plain 3dgs learns each photo's exposure
+    run = metegs_full()
+    assert run.view_exposure == "off" and baseline_config(run).view_exposure == "off"
+    run.view_exposure = "on"
+    assert baseline_config(run).view_exposure == "on"

@@ -364,3 +364,19 @@ def test_opacity_resets_stay_on_with_the_gtn_where_it_rains_under_thin_fog(tmp_p
     foggy = tiny_metegs(tmp_path / "fog", max_steps=3000, densify=ADCConfig(), conditions=fog).setup()
     assert foggy.gtn is not None and foggy.densifier.reset_every == 0
     assert foggy.decisions["opacity reset"].startswith("off: no rain leaves no streaks")
+
+
+def test_view_exposure_on_takes_each_photo_s_tone_in_the_weather_branch(tmp_path):
+    trainer = tiny_metegs(tmp_path, view_exposure="on", max_steps=5, eval_every=0.0, save_renders=False).setup()
+    assert trainer.exposure is not None and tiny_metegs(tmp_path).view_exposure == "off"
+    i = trainer.dataset.train_indices[0]
+    with torch.no_grad():
+        trainer.exposure.offsets[0, 0] += 0.5  # view i's gains up (the other views' down by the mean)
+    bg = trainer.background(training=True)
+    with torch.no_grad():
+        weather = trainer.render_weather(i, bg, training=True).rgb
+        photo = trainer.photo_render(i, bg).rgb
+    gains, offsets = trainer.exposure.gains_and_offsets()
+    assert torch.allclose(photo, weather * gains[0] + offsets[0], atol=1e-5)
+    trainer.train()
+    assert float(trainer.exposure.offsets.detach().abs()[:, 1].sum()) > 0  # the offsets learned from the photos
