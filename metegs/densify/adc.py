@@ -36,8 +36,10 @@ class ADCConfig(InstantiateConfig):
     prune_opacity: Annotated[float, FRACTION] = 0.1
     """Prune Gaussians whose opacity falls below this (0.1 as nerfstudio's splatfacto; INRIA's 0.005 lets
     half-transparent Gaussians fit single views of a sparse capture, so test PSNR falls as runs grow)."""
-    prune_scale3d: Annotated[float, POSITIVE] = 0.1
-    """After the first opacity reset, prune Gaussians larger than this fraction of the scene extent."""
+    prune_scale3d: Annotated[float, POSITIVE] = 0.5
+    """After the first opacity reset, prune Gaussians larger than this fraction of the scene extent (0.5 as
+    splatfacto and OpenSplat; INRIA's and gsplat's 0.1 leaves holes past the edges of the training views, where
+    views that look past the training photos need the large Gaussians)."""
     refine_start: Annotated[float, FRACTION] = 500 / 30000
     """Start of refinement, as a fraction of the run."""
     refine_stop: Annotated[float, FRACTION] = 15000 / 30000

@@ -125,3 +125,18 @@ def test_weather_gaussians_do_not_enter_statistics():
     out.radii = torch.full((5,), 5, dtype=torch.int32)
     adc.update_stats(model, out, num_scene=2)
     assert adc.state.count.tolist() == [1.0, 1.0]
+
+
+def test_after_the_first_reset_gaussians_larger_than_the_world_bound_are_pruned():
+    model, opts = model_with([0.04, 0.3, 0.7], [0.9, 0.9, 0.9])  # extent 1: default bound 0.5
+    adc = AdaptiveDensityControl(ADCConfig(), max_steps=3000, extent=1.0)
+    assert adc.reset_every == 300
+    adc.update_stats(model, fake_render(model, [[0, 0]] * 3))
+    assert adc.refine(model, opts, step=200)["prune"] == 0  # before the first reset: none
+    adc.update_stats(model, fake_render(model, [[0, 0]] * 3))
+    assert adc.refine(model, opts, step=400)["prune"] == 1  # after it: only the one over half the extent
+    kept = torch.exp(model.params["scales"][:, 0])
+    assert torch.allclose(kept, torch.tensor([0.04, 0.3]), rtol=0.01)  # (moved by model_with's one Adam step)
+    tight = AdaptiveDensityControl(ADCConfig(prune_scale3d=0.1), max_steps=3000, extent=1.0)
+    tight.update_stats(model, fake_render(model, [[0, 0]] * 2))
+    assert tight.refine(model, opts, step=400)["prune"] == 1  # the reference's 0.1 takes the 0.3 one too
