@@ -22,8 +22,9 @@ class ViewExposure(nn.Module):
         train = torch.as_tensor(list(train_indices), dtype=torch.long)
         slot = torch.full((num_views,), -1, dtype=torch.long)
         slot[train] = torch.arange(len(train))
-        self.register_buffer("slot", slot.to(device))
-        """Row of each dataset view in ``offsets`` (-1: not a training view)."""
+        self.slot: list[int] = slot.tolist()
+        """Row of each dataset view in ``offsets`` (-1: not a training view); a list, so a step on a GPU reads it
+        without waiting for the device."""
         self.offsets = nn.Parameter(torch.zeros(len(train), 2, 3, device=device))
         """[V, 2, 3] each training view's gain departure from one and its offset, per channel (before the means
         over the views are removed)."""
@@ -36,7 +37,7 @@ class ViewExposure(nn.Module):
 
     def forward(self, rgb: torch.Tensor, view: int) -> torch.Tensor:
         """``rgb`` [H, W, 3] as dataset view ``view``'s photo shows it (a view outside training: unchanged)."""
-        row = int(self.slot[view])
+        row = self.slot[view]
         if row < 0:
             return rgb
         gains, offsets = self.gains_and_offsets()
