@@ -143,6 +143,7 @@ def restored_dataset(
         source=None,
         parser="restored",
         image_space=scene.image_space,
+        rendered=scene.rendered,
     )
     record = {
         "restorer": restorer.name,

@@ -48,6 +48,8 @@ class SceneData:
     """Registry name of the parser that produced this scene."""
     image_space: str = "srgb"
     """Colour space of the images: 'srgb' or 'linear'."""
+    rendered: bool = False
+    """Views rendered with one exposure (synthetic, Blender, metegs-synth of those), not photographed."""
 
     def __len__(self) -> int:
         return len(self.cameras)

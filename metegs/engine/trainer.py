@@ -42,9 +42,6 @@ from metegs.render import RenderOutput, RenderSettings, make_rasterizer
 from metegs.render.cpu_backend import thread_split, thread_split_counts
 from metegs.render.select import resolve_backend
 
-RENDERED_PARSERS = ("synthetic", "blender")
-"""Parsers of rendered scenes, whose views share one exposure (`view_exposure` auto leaves them as they are)."""
-
 
 def resolve_device(name: str) -> torch.device:
     """``auto`` -> cuda if available else cpu; an unavailable CUDA device is a clear error."""
@@ -347,7 +344,7 @@ class Trainer:
     def _make_exposure(self) -> tuple[ViewExposure | None, torch.optim.Optimizer | None]:
         """The training views' gains and offsets and their optimiser, or (None, None) (`view_exposure`)."""
         choice = self.config.view_exposure
-        rendered = self.scene.parser in RENDERED_PARSERS
+        rendered = self.scene.rendered
         if choice == "auto":
             why = "a rendered scene: its views share one exposure" if rendered else "photos may differ in exposure"
             self.decide("view_exposure", f"{'off' if rendered else 'on'} ({why}; --view-exposure on|off)")

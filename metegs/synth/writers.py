@@ -186,6 +186,7 @@ class DatasetWriter:
                 if cams.exposure_time_s is None
                 else [float(x) for x in cams.exposure_time_s.tolist()],
                 "image_space": scene.image_space,
+                "rendered": scene.rendered,
             },
         }
         if scene.points is not None and len(scene.points):

@@ -238,7 +238,7 @@ def test_a_nerfstudio_copy_keeps_its_masks_and_points(tmp_path):
     np.testing.assert_allclose(back.points, scene.points)
 
 
-def test_synthetic_copy_reads_back_with_its_scale_exposure_and_up(storm):
+def test_synthetic_copy_reads_back_with_its_scale_exposure_up_and_rendering(storm):
     import torch
 
     scene = parse_scene(storm, None, DatasetConfig())
@@ -246,6 +246,18 @@ def test_synthetic_copy_reads_back_with_its_scale_exposure_and_up(storm):
     assert scene.metric_scale == original.metric_scale
     assert np.allclose(scene.up, original.up)
     assert torch.allclose(scene.cameras.exposure_time_s, original.cameras.exposure_time_s)
+    assert original.rendered and scene.rendered  # one exposure: `view_exposure` auto stays off on the copy
+
+
+def test_a_photographed_scene_copy_is_not_marked_rendered(tmp_path):
+    """A nerfstudio capture of photos is not rendered; its metegs block may say so, but only as true or false."""
+    src = tmp_path / "scene"
+    write_masked_nerfstudio(src)
+    assert not parse_scene(src, None, DatasetConfig()).rendered
+    meta = json.loads((src / "transforms.json").read_text())
+    (src / "transforms.json").write_text(json.dumps({**meta, "metegs": {"rendered": "yes"}}))
+    with pytest.raises(DataError, match="metegs.rendered"):
+        parse_scene(src, None, DatasetConfig())
 
 
 def test_a_distorted_capture_is_degraded_as_the_pinhole_views_it_trains_on(tmp_path):

@@ -69,6 +69,7 @@ class BlenderParser:
             train_indices=[i for i, v in enumerate(views) if v[0] == "train"],
             test_indices=[i for i, v in enumerate(views) if v[0] == "test"],
             source=path,
+            rendered=True,
         )
 
     @staticmethod

@@ -326,7 +326,7 @@ def read_ply_points(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
 
 
 def _metegs_block(meta: dict, n_frames: int, source: Path) -> dict:
-    """What metegs-synth adds under "metegs": per-frame exposure times and the scene's scale, up and colour space."""
+    """What metegs-synth adds under "metegs": per-frame exposure times; the scene's scale, up, colour space, rendering."""
     block = meta.get("metegs")
     out = {"exposure": [None] * n_frames, "scene": {}}
     if not isinstance(block, dict):
@@ -346,4 +346,8 @@ def _metegs_block(meta: dict, n_frames: int, source: Path) -> dict:
         out["scene"]["up"] = up / np.linalg.norm(up)
     if block.get("image_space") in ("srgb", "linear"):
         out["scene"]["image_space"] = block["image_space"]
+    if block.get("rendered") is not None:
+        if not isinstance(block["rendered"], bool):
+            raise DataError(source, f"metegs.rendered must be true or false, got {block['rendered']!r}")
+        out["scene"]["rendered"] = block["rendered"]
     return out

@@ -523,6 +523,7 @@ def build_scene(cfg: SyntheticSceneConfig, test_every: int = 8) -> SceneData:
         metric_scale=cfg.metres_per_unit,
         source=None,
         image_space="srgb",
+        rendered=True,
     )
 
 
