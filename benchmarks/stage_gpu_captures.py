@@ -18,9 +18,11 @@ import argparse
 import json
 import os
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+import torch
 import yaml
 from PIL import Image
 
@@ -47,33 +49,29 @@ def stage_scene(src: Path, dst: Path, shrink: int) -> None:
     masks) ``shrink`` times smaller, the world turned so metegs's up estimate is +Z (nerfstudio's convention; a
     COLMAP or LLFF world kept as it is puts height fog along the street), the same train/test split, and sparse
     points: the scene's, else triangulated here from the staged training views (the GPU image has no pycolmap)."""
+    from metegs.cameras import Cameras
     from metegs.data.config import DatasetConfig
     from metegs.data.parsers.base import parse_scene
     from metegs.data.triangulate import triangulate_known_poses
-    from metegs.synth.writers import write_ply_points
+    from metegs.synth.writers import pinhole_frames, write_ply_points
 
     scene = parse_scene(src, None, DatasetConfig(downscale=1))
-    turn = turn_up_to_z(np.asarray(scene.up, dtype=np.float64))
+    turn = torch.eye(4, dtype=torch.float64)
+    turn[:3, :3] = torch.from_numpy(turn_up_to_z(np.asarray(scene.up, dtype=np.float64)))
     cam = scene.cameras
+    sizes = [(round(int(w) / shrink), round(int(h) / shrink)) for w, h in zip(cam.width, cam.height, strict=True)]
+    cams = Cameras.cat([cam[i].resized(w, h) for i, (w, h) in enumerate(sizes)])
+    cams = replace(cams, camera_to_worlds=(turn @ cams.camera_to_worlds.double()).float())
+    files = [f"images/{i:03d}_{Path(name).stem}.jpg" for i, name in enumerate(scene.names)]  # JPEG: it must travel
+    frames = pinhole_frames(cams, files)
     (dst / "images").mkdir(parents=True)
-    frames = []
-    for i, (name, c2w) in enumerate(zip(scene.names, cam.camera_to_worlds.double().numpy(), strict=True)):
-        w, h = round(int(cam.width[i]) / shrink), round(int(cam.height[i]) / shrink)
-        sx, sy = w / int(cam.width[i]), h / int(cam.height[i])
-        file = f"images/{i:03d}_{Path(name).stem}.jpg"  # JPEG: the staged copy must travel (64 MiB)
-        Image.open(scene.image_paths[i]).convert("RGB").resize((w, h), Image.LANCZOS).save(dst / file, quality=95)
-        gl = np.eye(4)
-        gl[:3, :3] = turn @ c2w[:3, :3] @ np.diag([1.0, -1.0, -1.0])  # OpenCV -> OpenGL camera axes
-        gl[:3, 3] = turn @ c2w[:3, 3]
-        frame = {"file_path": file, "transform_matrix": gl.tolist(), "w": w, "h": h}
-        frame.update(fl_x=float(cam.fx[i]) * sx, fl_y=float(cam.fy[i]) * sy)
-        frame.update(cx=float(cam.cx[i]) * sx, cy=float(cam.cy[i]) * sy)
+    for i, (w, h) in enumerate(sizes):
+        Image.open(scene.image_paths[i]).convert("RGB").resize((w, h), Image.LANCZOS).save(dst / files[i], quality=95)
         if scene.mask_paths is not None:
-            mask = f"masks/{i:03d}_{Path(name).stem}.png"
+            mask = f"masks/{Path(files[i]).stem}.png"
             (dst / "masks").mkdir(exist_ok=True)
             Image.open(scene.mask_paths[i]).convert("L").resize((w, h), Image.NEAREST).save(dst / mask)
-            frame["mask_path"] = mask
-        frames.append(frame)
+            frames[i]["mask_path"] = mask
     meta = {
         "camera_model": "PINHOLE",
         "frames": frames,
@@ -81,7 +79,7 @@ def stage_scene(src: Path, dst: Path, shrink: int) -> None:
         "test_filenames": [frames[i]["file_path"] for i in scene.test_indices],
     }
     if scene.points is not None and len(scene.points):
-        points, colours = np.asarray(scene.points, dtype=np.float64) @ turn.T, scene.point_colors
+        points, colours = np.asarray(scene.points, dtype=np.float64) @ turn[:3, :3].numpy().T, scene.point_colors
     else:
         (dst / "transforms.json").write_text(json.dumps(meta, indent=1))
         staged = parse_scene(dst, None, DatasetConfig(downscale=1))
