@@ -388,16 +388,22 @@ class MeteGSTrainer(Trainer):
             stats["dark_channel"] = float(dark.detach())
             loss = loss + c.dark_channel.weight * dark
         if self.use_clean and (c.weights.clean > 0 or self.perceptual is not None):
-            settings = RenderSettings(background=background, sh_degree=self.model.active_sh_degree)
-            clean = self.rasterizer.render(self.model.activated(), self.dataset.cameras[index], settings)
+            clean = self.clean_branch(index, background)
             reference = self.reference(index, background)
             if c.weights.clean > 0:
-                loss = loss + c.weights.clean * (clean.rgb - reference).abs().mean()
+                loss = loss + c.weights.clean * (clean - reference).abs().mean()
             if self.perceptual is not None:
                 loss = loss + c.weights.perceptual * self.perceptual(
-                    clean.rgb, target_features=self._reference_features(index, reference)
+                    clean, target_features=self._reference_features(index, reference)
                 )
         return loss
+
+    def clean_branch(self, index: int, background: torch.Tensor) -> torch.Tensor:
+        """[H, W, 3] the scene alone in training view ``index``, in its photo's tone: the clean reference is that
+        photo without the weather, taken with the same exposure (`view_exposure`)."""
+        settings = RenderSettings(background=background, sh_degree=self.model.active_sh_degree)
+        clean = self.rasterizer.render(self.model.activated(), self.dataset.cameras[index], settings)
+        return self.as_photographed(clean.rgb, index)
 
     def step_optimizers(self) -> list[torch.optim.Optimizer]:
         """The Gaussians' optimisers and the method's (GTN, weather)."""

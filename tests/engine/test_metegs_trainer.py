@@ -10,6 +10,7 @@ from metegs.data.config import DatasetConfig, SyntheticSceneConfig
 from metegs.densify.adc import ADCConfig
 from metegs.engine.metegs_config import MeteGSConfig
 from metegs.models.gtn import GTNConfig
+from metegs.render import RenderSettings
 from metegs.weather.conditions import ConditionsConfig
 from metegs.weather.learnable import LearnableTransients
 
@@ -366,7 +367,7 @@ def test_opacity_resets_stay_on_with_the_gtn_where_it_rains_under_thin_fog(tmp_p
     assert foggy.decisions["opacity reset"].startswith("off: no rain leaves no streaks")
 
 
-def test_view_exposure_on_takes_each_photo_s_tone_in_the_weather_branch(tmp_path):
+def test_view_exposure_on_takes_each_photo_s_tone_in_both_branches(tmp_path):
     trainer = tiny_metegs(tmp_path, view_exposure="on", max_steps=5, eval_every=0.0, save_renders=False).setup()
     assert trainer.exposure is not None and tiny_metegs(tmp_path).view_exposure == "off"
     i = trainer.dataset.train_indices[0]
@@ -376,7 +377,12 @@ def test_view_exposure_on_takes_each_photo_s_tone_in_the_weather_branch(tmp_path
     with torch.no_grad():
         weather = trainer.render_weather(i, bg, training=True).rgb
         photo = trainer.photo_render(i, bg).rgb
+        clean = trainer.clean_branch(i, bg)
+        settings = RenderSettings(background=bg, sh_degree=trainer.model.active_sh_degree)
+        scene = trainer.rasterizer.render(trainer.model.activated(), trainer.dataset.cameras[i], settings)
     gains, offsets = trainer.exposure.gains_and_offsets()
     assert torch.allclose(photo, weather * gains[0] + offsets[0], atol=1e-5)
+    # the clean reference is the same photo without the weather: the clean branch takes its tone too
+    assert torch.allclose(clean, scene.rgb * gains[0] + offsets[0], atol=1e-5)
     trainer.train()
     assert float(trainer.exposure.offsets.detach().abs()[:, 1].sum()) > 0  # the offsets learned from the photos
