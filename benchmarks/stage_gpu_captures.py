@@ -103,7 +103,8 @@ def grid_config(real: dict) -> dict:
     for record in RECORDS:
         text = text.replace(f"../../../shared/data/{record}", record)
     config["conditions"] = yaml.safe_load(text)
-    methods = [m for m in real["methods"] if m.get("photos") != "restored"]
+    restores = lambda m: m.get("photos") == "restored" or m.get("overrides", {}).get("pseudo_references")  # noqa: E731
+    methods = [m for m in real["methods"] if not restores(m)]
     for m in methods:
         if m["method"].startswith("metegs"):
             m.setdefault("overrides", {})["compare_baseline"] = False

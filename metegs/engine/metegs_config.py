@@ -36,6 +36,8 @@ class LossWeights:
     """λ_perc: clean branch against the clean reference on frozen pretrained features (0: off)."""
     clean: Annotated[float, NON_NEGATIVE] = 0.1
     """λ_clean: L1 of the clean branch against the clean reference (0: off)."""
+    pseudo: Annotated[float, NON_NEGATIVE] = 0.5
+    """λ_pseudo: L1 of the clean branch against the 2D-restored photo (`pseudo_references restore`, blind runs)."""
 
 
 @dataclass
@@ -64,6 +66,9 @@ class MeteGSConfig(TrainConfig):
     view_exposure: Literal["auto", "on", "off"] = "off"
     """Per-view gains and offsets of the photos' tone (see 3dgs); off for MeteGS until measured beside its fog,
     whose per-view tone they would compete with (the comparison's 3dgs run follows this choice)."""
+    pseudo_references: Literal["off", "restore"] = "off"
+    """Blind runs: restore each training photo in 2D (Kang 2012 for rain, DCP for fog: the active weather's kinds) and
+    hold the clean branch to it at weight `weights.pseudo`, as if it were the photo's clean reference."""
     densify: ADCConfig = field(default_factory=lambda: ADCConfig(prune_opacity=0.005, prune_scale3d=0.1))
     """Densification; pruning keeps Deblurring-3DGS's base threshold 0.005, which depth-aware pruning lowers
     for far Gaussians (3dgs's 0.1 costs blind MeteGS 0.9 dB on the default run), and the reference's world-size

@@ -8,6 +8,7 @@ Evaluation, renders and export use the clean branch only.
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import replace
 from pathlib import Path
 
@@ -25,6 +26,7 @@ from metegs.render import RenderSettings
 from metegs.weather.base import WeatherModel, WeatherScene, model_seed
 from metegs.weather.compose import render_with_weather
 from metegs.weather.fog_analytic import FogAnalytic
+from metegs.weather.kinds import kind_of
 from metegs.weather.learnable import LearnableTransients
 
 LIGHT_OR_NONE = ("none", "light")
@@ -73,6 +75,8 @@ class MeteGSTrainer(Trainer):
         """The media the dark-channel prior holds (`_decide_dark_channel`)."""
         self.medium_optical_depth = 0.0
         """Largest optical depth β·d of a weather model's medium at the scene's typical depth d (0: none)."""
+        self.active_kinds: set[str] = set()
+        """Kinds of the weather models that are on (rain, fog, ...; `_build_weather`)."""
         self.weather_models: list[WeatherModel] = self._build_weather() if c.weather_branch else []
         if not c.weather_branch:
             self.decide("weather", "off (ablation): the scene alone fits the degraded photos")
@@ -83,6 +87,8 @@ class MeteGSTrainer(Trainer):
             self.decide("clean branch", "off: --clean-supervision False (blind mode)")
         else:
             self.decide("clean branch", f"on: L1 weight {c.weights.clean}")
+        self.pseudo_references = self._restore_training_photos()
+        """Training view -> its photo restored in 2D [H, W, 3] (`pseudo_references`; empty: off)."""
         self.perceptual = self._build_perceptual()
         r = c.robust
         rain = self.weather_theta(self.scene).rain
@@ -143,6 +149,7 @@ class MeteGSTrainer(Trainer):
                         "notices: the photos cannot tell it from the surfaces' colours; removing it could only bias them",
                     )
                     continue
+            self.active_kinds.add(kind_of(name))
             if isinstance(model, FogAnalytic):
                 self._decide_record_prior(name, model)
             if getattr(model, "transient", False):
@@ -153,6 +160,37 @@ class MeteGSTrainer(Trainer):
                 self.decide(f"weather {name}", "on")
             models.append(model)
         return models
+
+    def _restore_training_photos(self) -> dict[int, torch.Tensor]:
+        """Each training photo restored in 2D by the restorers of the active weather's rain and fog
+        (`pseudo_references`), or {} where that is off or the run has clean references."""
+        if self.config.pseudo_references == "off":
+            return {}
+        if self.use_clean:
+            self.decide("pseudo references", "off: the clean references hold the clean branch")
+            return {}
+        kinds = "+".join(k for k in ("rain", "fog") if k in self.active_kinds)
+        if not kinds:
+            self.decide("pseudo references", "off: no rain or fog model is on, so there is nothing to restore")
+            return {}
+        from metegs.restore import restorer_for_kinds
+
+        restorer = restorer_for_kinds(kinds)
+        views = list(self.dataset.train_indices)
+        restored = {}
+        status = self.console.status("") if self.console is not None else contextlib.nullcontext()
+        with status as shown:
+            for n, i in enumerate(views):
+                if shown is not None:
+                    shown.update(f"restoring the training photos in 2D ({restorer.name}): {n}/{len(views)}")
+                photo = self.dataset.images[i].detach().cpu().numpy()
+                restored[i] = torch.from_numpy(restorer.restore(photo)).to(self.device)
+        self.decide(
+            "pseudo references",
+            f"on: the clean branch is held to the {len(views)} training photos restored by {restorer.name} "
+            f"(L1 weight {self.config.weights.pseudo})",
+        )
+        return restored
 
     def _decide_record_prior(self, name: str, fog: FogAnalytic) -> None:
         """What sets ``fog``'s β where the photometric fit alone cannot: ``auto`` asks if the views see the scene's
@@ -387,6 +425,9 @@ class MeteGSTrainer(Trainer):
             dark = dark_channel_loss(dehazed, valid, c.dark_channel)
             stats["dark_channel"] = float(dark.detach())
             loss = loss + c.dark_channel.weight * dark
+        if index in self.pseudo_references and c.weights.pseudo > 0:
+            pseudo = self._masked(index, self.pseudo_references[index], background)
+            loss = loss + c.weights.pseudo * (self.clean_branch(index, background) - pseudo).abs().mean()
         if self.use_clean and (c.weights.clean > 0 or self.perceptual is not None):
             clean = self.clean_branch(index, background)
             reference = self.reference(index, background)

@@ -386,3 +386,33 @@ def test_view_exposure_on_takes_each_photo_s_tone_in_both_branches(tmp_path):
     assert torch.allclose(clean, scene.rgb * gains[0] + offsets[0], atol=1e-5)
     trainer.train()
     assert float(trainer.exposure.offsets.detach().abs()[:, 1].sum()) > 0  # the offsets learned from the photos
+
+
+def test_pseudo_references_hold_a_blind_clean_branch_to_the_restored_photos(tmp_path):
+    from metegs.restore import restorer_for_kinds
+
+    trainer = tiny_metegs(tmp_path, clean_supervision=False, pseudo_references="restore", max_steps=3).setup()
+    assert trainer.active_kinds >= {"rain", "fog"}
+    assert trainer.decisions["pseudo references"].startswith("on: the clean branch is held to the 10 training")
+    assert set(trainer.pseudo_references) == set(trainer.dataset.train_indices)
+    i = trainer.dataset.train_indices[0]
+    expected = restorer_for_kinds("rain+fog").restore(trainer.dataset.images[i].numpy())
+    assert torch.allclose(trainer.pseudo_references[i], torch.from_numpy(expected))
+    assert (trainer.pseudo_references[i] - trainer.dataset.images[i]).abs().mean() > 0.01  # restoring changed it
+    # the term is the weighted L1 of the clean branch against the restored photo
+    bg = trainer.background(training=True)
+    render = trainer.photo_render(i, bg)
+    with torch.no_grad():
+        held = trainer.step_loss(i, bg, render, trainer.target(i, bg), {})
+        trainer.config.weights.pseudo = 0.0
+        free = trainer.step_loss(i, bg, render, trainer.target(i, bg), {})
+        l1 = (trainer.clean_branch(i, bg) - trainer.pseudo_references[i]).abs().mean()
+    assert torch.allclose(held - free, 0.5 * l1, atol=1e-6)
+    trainer.config.weights.pseudo = 0.5
+    trainer.train()
+
+
+def test_pseudo_references_stay_off_where_clean_references_hold_the_clean_branch(tmp_path):
+    trainer = tiny_metegs(tmp_path, pseudo_references="restore", max_steps=3).setup()
+    assert trainer.pseudo_references == {}
+    assert trainer.decisions["pseudo references"].startswith("off: the clean references")
