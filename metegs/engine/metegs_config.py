@@ -25,6 +25,11 @@ from metegs.weather.rain_streaks import RainStreaksConfig
 
 C = TypeVar("C")
 
+BLURRED_PRUNE_OPACITY = 0.005
+"""MeteGS's base opacity-pruning threshold (Deblurring-3DGS's): blurred photos need faint Gaussians."""
+SHARP_PRUNE_OPACITY = ADCConfig().prune_opacity
+"""3dgs's threshold, which training takes where nothing in the weather blurs the photos."""
+
 
 @dataclass
 class LossWeights:
@@ -63,16 +68,17 @@ class MeteGSConfig(TrainConfig):
     """Gaussian Transformation Network of the weather branch."""
     perceptual: PerceptualLossConfig = field(default_factory=PerceptualLossConfig)
     """Perceptual loss of the clean branch (backbone and layers)."""
-    view_exposure: Literal["auto", "on", "off"] = "off"
-    """Per-view gains and offsets of the photos' tone (see 3dgs); off for MeteGS until measured beside its fog,
-    whose per-view tone they would compete with (the comparison's 3dgs run follows this choice)."""
+    view_exposure: Literal["auto", "on", "off"] = "auto"
+    """Per-view gains and offsets of the photos' tone (see 3dgs); auto: as 3dgs where no fog model is on, off beside
+    one, whose airlight and β set each view's tone too (the comparison's 3dgs run gets the same setting)."""
     pseudo_references: Literal["off", "restore"] = "off"
     """Blind runs: restore each training photo in 2D (Kang 2012 for rain, DCP for fog: the active weather's kinds) and
     hold the clean branch to it at weight `weights.pseudo`, as if it were the photo's clean reference."""
-    densify: ADCConfig = field(default_factory=lambda: ADCConfig(prune_opacity=0.005, prune_scale3d=0.1))
+    densify: ADCConfig = field(default_factory=lambda: ADCConfig(prune_opacity=BLURRED_PRUNE_OPACITY))
     """Densification; pruning keeps Deblurring-3DGS's base threshold 0.005, which depth-aware pruning lowers
-    for far Gaussians (3dgs's 0.1 costs blind MeteGS 0.9 dB on the default run), and the reference's world-size
-    prune at 0.1 of the extent (3dgs's 0.5 not yet measured with the weather)."""
+    for far Gaussians (3dgs's 0.1 costs blind MeteGS 0.9 dB on the default run; where nothing blurs the photos,
+    training takes 3dgs's), and 3dgs's world-size prune at half the extent (0.1 cost blind MeteGS 0.4-0.9 dB in
+    rain on the Lund street, two seeds)."""
     depth_prune: bool = True
     """Depth-aware pruning: the opacity threshold falls with normalised camera depth."""
     depth_prune_options: DepthPruneConfig = field(default_factory=DepthPruneConfig)

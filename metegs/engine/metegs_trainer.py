@@ -14,7 +14,7 @@ from pathlib import Path
 
 import torch
 
-from metegs.engine.metegs_config import MeteGSConfig
+from metegs.engine.metegs_config import BLURRED_PRUNE_OPACITY, SHARP_PRUNE_OPACITY, MeteGSConfig
 from metegs.engine.optim import adam
 from metegs.engine.trainer import StepRender, Trainer
 from metegs.errors import ConfigError
@@ -275,20 +275,38 @@ class MeteGSTrainer(Trainer):
         if not (c.gtn.enabled and c.weather_branch):
             self.decide("gtn", "off" + ("" if c.weather_branch else ": no weather branch"))
             return None
-        rain = self.weather_theta(self.scene).rain
-        if rain.intensity_class in LIGHT_OR_NONE and not any(
-            hasattr(m, "extinction_per_m") for m in self.weather_models
-        ):
-            self.decide(
-                "gtn",
-                f"off: {rain_phrase(rain)} and no visible medium: nothing in this weather blurs the photos, and "
-                "per-view growth would only absorb the scene's detail",
-            )
+        sharp = self._sharp_weather()
+        if sharp is not None:
+            self.decide("gtn", f"off: {sharp}, and per-view growth would only absorb the scene's detail")
             return None
         centre = self.dataset.cameras[self.dataset.train_indices].camera_to_worlds[:, :3, 3].mean(0)
         gtn = GaussianTransformationNetwork(c.gtn, centre, self.extent).to(self.device)
         self.decide("gtn", f"on: scale/rotation growth in [1, {c.gtn.max_factor}]")
         return gtn
+
+    @property
+    def has_medium(self) -> bool:
+        """Whether a weather model with a medium (fog, rain veil) is on."""
+        return any(hasattr(m, "extinction_per_m") for m in self.weather_models)
+
+    def _sharp_weather(self) -> str | None:
+        """Why nothing in this weather blurs the photos (light or no rain, no visible medium), or None."""
+        rain = self.weather_theta(self.scene).rain
+        if rain.intensity_class in LIGHT_OR_NONE and not self.has_medium:
+            return f"{rain_phrase(rain)} and no visible medium: nothing in this weather blurs the photos"
+        return None
+
+    def _make_exposure(self):
+        """3dgs's per-view tone, but with `view_exposure` auto off beside a fog model (its airlight and β set each
+        view's tone too)."""
+        if self.config.view_exposure == "auto" and self.has_medium:
+            self.decide(
+                "view_exposure",
+                "off (a fog model is on: its airlight and β set each view's tone, which per-view gains would "
+                "compete with; --view-exposure on|off)",
+            )
+            return None, None
+        return super()._make_exposure()
 
     def _build_perceptual(self):
         c = self.config
@@ -340,7 +358,15 @@ class MeteGSTrainer(Trainer):
             views = len(self.dataset.train_indices)
             return options.setup(max_steps=c.max_steps, extent=self.extent, num_train_views=views, prune_rule=rule)
 
-        densifier, rain = build(c.densify), self.weather_theta(self.scene).rain
+        densify, sharp = c.densify, self._sharp_weather()
+        if sharp is not None and densify.prune_opacity == BLURRED_PRUNE_OPACITY:
+            densify = replace(densify, prune_opacity=SHARP_PRUNE_OPACITY)
+            self.decide(
+                "opacity pruning",
+                f"{SHARP_PRUNE_OPACITY:g} (3dgs's): {sharp}, so the {BLURRED_PRUNE_OPACITY:g} kept for blurred photos "
+                "would only leave half-transparent Gaussians that fit single views",
+            )
+        densifier, rain = build(densify), self.weather_theta(self.scene).rain
         if not getattr(densifier, "reset_every", 0):
             return densifier
         if self.gtn is not None and rain.intensity_class in LIGHT_OR_NONE:
@@ -355,7 +381,7 @@ class MeteGSTrainer(Trainer):
         else:
             return densifier
         self.decide("opacity reset", f"off: {why}")
-        return build(replace(c.densify, reset_every=0.0))
+        return build(replace(densify, reset_every=0.0))
 
     def _method_optimizers(self) -> dict[str, torch.optim.Optimizer]:
         optimizers = {}

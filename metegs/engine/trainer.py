@@ -159,7 +159,6 @@ class Trainer:
         else:
             self.model = self._initial_model()
         self.optimizers = make_optimizers(self.model.params, config.optim, self.extent)
-        self.exposure, self.exposure_optimizer = self._make_exposure()
         self.loss_fn = config.loss.setup()
         self.step = 0
         self.history: list[dict] = []
@@ -170,6 +169,7 @@ class Trainer:
         self.run_dir = Path(run_dir) if run_dir is not None else self._default_run_dir()
         """The run folder; a default one is claimed (made new, never reused) when training starts."""
         self.setup_method()
+        self.exposure, self.exposure_optimizer = self._make_exposure()  # after the method: it may decide
         self.densifier = self.make_densifier()
         if ckpt is not None:
             self._restore_state(ckpt)

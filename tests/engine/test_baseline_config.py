@@ -17,6 +17,6 @@ def test_baseline_prunes_as_3dgs_not_as_the_metegs_run():
 def test_baseline_takes_the_photos_tones_as_the_run_does():
     assert gaussian_splatting().view_exposure == "auto"  # plain 3dgs learns each photo's exposure
     run = metegs_full()
-    assert run.view_exposure == "off" and baseline_config(run).view_exposure == "off"
-    run.view_exposure = "on"
-    assert baseline_config(run).view_exposure == "on"
+    assert run.view_exposure == "auto" and baseline_config(run).view_exposure == "auto"
+    run.view_exposure = "off"
+    assert baseline_config(run).view_exposure == "off"

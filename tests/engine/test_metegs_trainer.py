@@ -341,6 +341,24 @@ def test_light_rain_switches_off_the_gtn_and_the_robust_mask(tmp_path):
     assert heavy.robust_from is not None and heavy.decisions["robust mask"].startswith("on")
 
 
+def test_sharp_weather_prunes_opacity_as_3dgs_does(tmp_path):
+    """Light rain with no visible medium blurs nothing: the faint Gaussians MeteGS keeps for blurred photos only fit
+    single views there (1.1 dB under 3dgs on the Lund street), so training takes 3dgs's threshold and says so; a
+    threshold the user chose stays, and heavy rain keeps MeteGS's."""
+    from metegs.engine.metegs_config import BLURRED_PRUNE_OPACITY, SHARP_PRUNE_OPACITY
+
+    assert SHARP_PRUNE_OPACITY > BLURRED_PRUNE_OPACITY
+    drizzle, default = ConditionsConfig(precip_mm_h=1.5), MeteGSConfig().densify
+    light = tiny_metegs(tmp_path / "light", conditions=drizzle, max_steps=3000, densify=default).setup()
+    assert light.densifier.config.prune_opacity == SHARP_PRUNE_OPACITY
+    assert light.decisions["opacity pruning"].startswith(f"{SHARP_PRUNE_OPACITY:g} (3dgs's): light rain")
+    chosen = replace(default, prune_opacity=0.02)
+    mine = tiny_metegs(tmp_path / "mine", conditions=drizzle, max_steps=3000, densify=chosen).setup()
+    assert mine.densifier.config.prune_opacity == 0.02 and "opacity pruning" not in mine.decisions
+    heavy = tiny_metegs(tmp_path / "heavy", max_steps=3000, densify=default).setup()  # 20 mm/h and 400 m
+    assert heavy.densifier.config.prune_opacity == BLURRED_PRUNE_OPACITY and "opacity pruning" not in heavy.decisions
+
+
 def test_opacity_resets_stay_on_with_the_gtn_where_it_rains_under_thin_fog(tmp_path):
     """Resets remove the Gaussians that fitted single photos' streaks (measured on two real captures): with rain
     the GTN keeps the plain 3DGS schedule; under fog alone, or fog dense at the scene's depth (visibility under 3×
@@ -367,9 +385,21 @@ def test_opacity_resets_stay_on_with_the_gtn_where_it_rains_under_thin_fog(tmp_p
     assert foggy.decisions["opacity reset"].startswith("off: no rain leaves no streaks")
 
 
+def test_view_exposure_auto_is_off_beside_a_fog_model_and_3dgs_s_rule_without(tmp_path):
+    """Beside a fog model its airlight and β set each view's tone; without one (light rain) MeteGS learns each
+    photo's tone as 3dgs does (3dgs's rule: off for a rendered scene such as this one, on for photos)."""
+    foggy = tiny_metegs(tmp_path / "fog", max_steps=5).setup()  # 20 mm/h and 400 m: fog-analytic on
+    assert foggy.has_medium and foggy.exposure is None
+    assert foggy.decisions["view_exposure"].startswith("off (a fog model is on")
+    light = tiny_metegs(tmp_path / "light", max_steps=5, conditions=ConditionsConfig(precip_mm_h=1.5)).setup()
+    assert not light.has_medium and light.decisions["view_exposure"].startswith("off (a rendered scene")
+    forced = tiny_metegs(tmp_path / "on", max_steps=5, view_exposure="on").setup()
+    assert forced.has_medium and forced.exposure is not None
+
+
 def test_view_exposure_on_takes_each_photo_s_tone_in_both_branches(tmp_path):
     trainer = tiny_metegs(tmp_path, view_exposure="on", max_steps=5, eval_every=0.0, save_renders=False).setup()
-    assert trainer.exposure is not None and tiny_metegs(tmp_path).view_exposure == "off"
+    assert trainer.exposure is not None and tiny_metegs(tmp_path).view_exposure == "auto"
     i = trainer.dataset.train_indices[0]
     with torch.no_grad():
         trainer.exposure.offsets[0, 0] += 0.5  # view i's gains up (the other views' down by the mean)
