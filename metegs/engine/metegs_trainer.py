@@ -107,7 +107,12 @@ class MeteGSTrainer(Trainer):
             self.decide(
                 "robust mask",
                 f"on from step {self.robust_from}: pixels {'brighter' if r.brighter_only else 'further'} than "
-                f"{r.k_sigma:g} robust sigmas of their view's residuals (grown by {r.dilate_px} px) are left out",
+                f"{r.k_sigma:g} robust sigmas of their view's residuals (grown by {r.dilate_px} px) are left out"
+                + (
+                    f", and the L1 fits the {r.quantile:.0%} quantile of a pixel's photos (rain only adds light)"
+                    if r.quantile != 0.5
+                    else ""
+                ),
             )
         self._feature_cache: dict[int, list[dict[str, torch.Tensor]]] = {}
         self._setup_extra_points()
@@ -437,11 +442,12 @@ class MeteGSTrainer(Trainer):
         """The weather branch's (trimmed) photometric loss, the weather models' priors and, with clean references,
         the clean branch's L1 and perceptual terms."""
         c = self.config
-        weights = None
+        weights, quantile = None, 0.5
         if self.robust_from is not None and self.step >= self.robust_from:
             weights = inlier_weights(target - render.rgb.detach(), c.robust)
+            quantile = c.robust.quantile
             stats["inliers"] = float(weights.mean())
-        loss = c.weights.photo * self.loss_fn(render.rgb, target, weights)
+        loss = c.weights.photo * self.loss_fn(render.rgb, target, weights, quantile)
         for m in self.weather_models:
             prior = m.prior(index)
             if prior is not None:

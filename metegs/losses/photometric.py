@@ -1,4 +1,8 @@
-"""Photometric loss of 3DGS: (1 - λ)·L1 + λ·(1 - SSIM), the SSIM map compiled on CPU (`fused_ssim`)."""
+"""Photometric loss of 3DGS: (1 - λ)·L1 + λ·(1 - SSIM), the SSIM map compiled on CPU (`fused_ssim`).
+
+The L1 term can fit a quantile of a pixel's photos rather than their median (`pinball_l1`): where the photos are
+only ever brightened (rain), the scene lies under most of them.
+"""
 
 from __future__ import annotations
 
@@ -27,16 +31,33 @@ class PhotometricLoss:
     def __init__(self, config: PhotometricLossConfig | None = None):
         self.config = config or PhotometricLossConfig()
 
-    def __call__(self, pred: torch.Tensor, target: torch.Tensor, weights: torch.Tensor | None = None) -> torch.Tensor:
+    def __call__(
+        self,
+        pred: torch.Tensor,
+        target: torch.Tensor,
+        weights: torch.Tensor | None = None,
+        quantile: float = 0.5,
+    ) -> torch.Tensor:
         """Scalar loss of ``pred`` against ``target`` (both [H, W, 3]); ``weights`` [H, W] (e.g. an inlier mask)
-        restricts both terms to the pixels it weighs, as a weighted mean."""
+        restricts both terms to the pixels it weighs, as a weighted mean; ``quantile`` below 0.5 makes the L1 term
+        `pinball_l1` (0.5: plain L1)."""
         lam = self.config.ssim_lambda
         w = None if weights is None else weights[..., None]
         denom = None if w is None else w.sum().clamp_min(1.0)
-        diff = (pred - target).abs()
+        diff = pinball_l1(pred, target, quantile)
         l1 = diff.mean() if w is None else (diff * w).sum() / (denom * pred.shape[-1])
         if lam == 0:
             return l1
         sim = training_ssim_map(pred, target)
         s = sim.mean() if w is None else (sim * w).sum() / (denom * pred.shape[-1])
         return (1.0 - lam) * l1 + lam * (1.0 - s)
+
+
+def pinball_l1(pred: torch.Tensor, target: torch.Tensor, quantile: float = 0.5) -> torch.Tensor:
+    """Per-element asymmetric L1 of ``pred`` against ``target`` (same shape): 2q·(target − pred) where the target is
+    brighter, 2(1 − q)·(pred − target) where it is darker. Summed over samples of one target it is least at their
+    ``quantile`` (q), so a Gaussian seen in many photos takes their q-quantile; q = 0.5 is |pred − target|."""
+    if quantile == 0.5:
+        return (pred - target).abs()
+    residual = target - pred
+    return 2.0 * torch.maximum(quantile * residual, (quantile - 1.0) * residual)

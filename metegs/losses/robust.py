@@ -9,6 +9,11 @@ a tiny σ, and its fine texture is not weather). Rain and drops add light to a p
 residuals where the photo is brighter than the model count (``brighter_only``); outliers are grown by
 ``dilate_px`` to take the soft edges of a streak. The weights carry no gradient: they select which pixels the
 photometric loss sees.
+
+The mask leaves out what stands out; dense rain also brightens almost every other pixel a little (blurred streak
+tails, a veil), so the median of a pixel's photos, which L1 fits, sits above the clean scene. Rain only ever adds
+light to a photo (Garg and Nayar, CVPR 2004), so with the mask the L1 fits a low ``quantile`` of a pixel's photos
+(`metegs.losses.photometric.pinball_l1`).
 """
 
 from __future__ import annotations
@@ -42,6 +47,9 @@ class RobustMaskConfig:
     """Outliers are grown by this many pixels (the soft edges of a streak)."""
     start: Annotated[float, FRACTION] = 0.1
     """Fraction of the run before the mask is used (the scene must first fit something)."""
+    quantile: Annotated[float, Range(0.0, 0.5, lo_open=True)] = 0.1
+    """With the mask, the L1 fits this quantile of a pixel's photos instead of their median (0.5: plain L1): rain
+    brightens nearly every pixel a little, so the clean scene lies under most of its photos."""
 
 
 @torch.no_grad()

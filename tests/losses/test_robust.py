@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from metegs.losses.photometric import PhotometricLoss
+from metegs.losses.photometric import PhotometricLoss, PhotometricLossConfig
 from metegs.losses.robust import RobustMaskConfig, inlier_weights
 
 
@@ -65,3 +65,33 @@ def test_a_closely_fitted_view_keeps_its_fine_texture():
     residual[::7, ::5] += 0.02  # small bright misses of fine detail
     assert inlier_weights(residual, RobustMaskConfig(enabled=True)).min() == 1
     assert inlier_weights(residual, RobustMaskConfig(enabled=True, min_excess=0.0)).mean() < 0.9
+
+
+def test_pinball_l1_is_l1_at_the_median_and_least_at_its_quantile():
+    """A value fitted to many photos by the pinball L1 lands on their q-quantile (closed form), not their median."""
+    from metegs.losses.photometric import pinball_l1
+
+    g = torch.Generator().manual_seed(4)
+    pred, target = torch.rand(8, 8, 3, generator=g), torch.rand(8, 8, 3, generator=g)
+    assert torch.equal(pinball_l1(pred, target), (pred - target).abs())
+    photos = 0.3 + torch.rand(401, generator=g).pow(3) * 0.5  # one point's photos, brightened by rain
+    for q in (0.1, 0.25, 0.5):
+        value = torch.tensor(0.5, requires_grad=True)
+        opt = torch.optim.Adam([value], lr=0.01)
+        for _ in range(600):
+            opt.zero_grad()
+            pinball_l1(value.expand_as(photos), photos, q).mean().backward()
+            opt.step()
+        assert abs(float(value) - float(photos.quantile(q))) < 0.01, q
+
+
+def test_the_quantile_reaches_the_l1_term_only():
+    g = torch.Generator().manual_seed(5)
+    pred = torch.rand(24, 32, 3, generator=g)
+    target = (pred + 0.1).clamp(max=1)  # every photo brighter than the render
+    loss, ones = PhotometricLoss(), torch.ones(24, 32)
+    darker = (pred - 0.1).clamp(min=0)  # every photo darker
+    assert loss(pred, target, ones, quantile=0.1) < loss(pred, target, ones) < loss(pred, darker, ones)
+    assert loss(pred, darker, ones) < loss(pred, darker, ones, quantile=0.1)
+    plain = PhotometricLoss(PhotometricLossConfig(ssim_lambda=0.0))
+    assert torch.isclose(plain(pred, target, ones, 0.1), 0.2 * (target - pred).mean())
