@@ -90,33 +90,45 @@ class MeteGSTrainer(Trainer):
         self.pseudo_references = self._restore_training_photos()
         """Training view -> its photo restored in 2D [H, W, 3] (`pseudo_references`; empty: off)."""
         self.perceptual = self._build_perceptual()
-        r = c.robust
+        self._setup_robust()
+        self._feature_cache: dict[int, list[dict[str, torch.Tensor]]] = {}
+        self._setup_extra_points()
+        self.method_optimizers = self._method_optimizers()
+
+    def _setup_robust(self) -> None:
+        """The robust mask (`robust_from`) where rain heavier than light falls, and the quantile of a pixel's photos
+        that its L1 fits there (`fit_quantile`)."""
+        c, r = self.config, self.config.robust
         rain = self.weather_theta(self.scene).rain
         wanted = r.enabled and rain.intensity_class not in LIGHT_OR_NONE
         self.robust_from = int(round(r.start * c.max_steps)) if wanted else None
         """Step from which the weather branch's photometric loss is trimmed to inliers (None: never)."""
+        self.fit_quantile = 0.5
+        """The quantile of a pixel's photos that the trimmed L1 fits (0.5: their median, plain L1)."""
         if not r.enabled:
             self.decide("robust mask", "off")
-        elif not wanted:
+            return
+        if not wanted:
             self.decide(
                 "robust mask",
                 f"off: {rain_phrase(rain)} leaves no streak bright enough to stand out, so trimming would only drop "
                 "the scene's hardest pixels",
             )
+            return
+        self.decide(
+            "robust mask",
+            f"on from step {self.robust_from}: pixels {'brighter' if r.brighter_only else 'further'} than "
+            f"{r.k_sigma:g} robust sigmas of their view's residuals (grown by {r.dilate_px} px) are left out",
+        )
+        self.fit_quantile = r.quantile
+        if r.quantile == 0.5:
+            why = "off: --robust.quantile 0.5 (the L1 fits the median of a pixel's photos)"
         else:
-            self.decide(
-                "robust mask",
-                f"on from step {self.robust_from}: pixels {'brighter' if r.brighter_only else 'further'} than "
-                f"{r.k_sigma:g} robust sigmas of their view's residuals (grown by {r.dilate_px} px) are left out"
-                + (
-                    f", and the L1 fits the {r.quantile:.0%} quantile of a pixel's photos (rain only adds light)"
-                    if r.quantile != 0.5
-                    else ""
-                ),
+            why = (
+                f"on: the trimmed L1 fits the {r.quantile:.0%} quantile of a pixel's photos, not their median: "
+                f"{rain_phrase(rain)} brightens nearly every pixel a little, and rain only adds light"
             )
-        self._feature_cache: dict[int, list[dict[str, torch.Tensor]]] = {}
-        self._setup_extra_points()
-        self.method_optimizers = self._method_optimizers()
+        self.decide("low-quantile fit", why)
 
     def _build_weather(self) -> list[WeatherModel]:
         from metegs.weather.conditions import describe, scene_metres_per_unit
@@ -445,7 +457,7 @@ class MeteGSTrainer(Trainer):
         weights, quantile = None, 0.5
         if self.robust_from is not None and self.step >= self.robust_from:
             weights = inlier_weights(target - render.rgb.detach(), c.robust)
-            quantile = c.robust.quantile
+            quantile = self.fit_quantile
             stats["inliers"] = float(weights.mean())
         loss = c.weights.photo * self.loss_fn(render.rgb, target, weights, quantile)
         for m in self.weather_models:

@@ -341,6 +341,20 @@ def test_light_rain_switches_off_the_gtn_and_the_robust_mask(tmp_path):
     assert heavy.robust_from is not None and heavy.decisions["robust mask"].startswith("on")
 
 
+def test_heavy_rain_fits_a_low_quantile_of_the_photos(tmp_path):
+    """Rain only adds light: the trimmed L1 fits a low quantile of a pixel's photos in heavy rain, the median where
+    the user asks for it, and nothing changes in light rain (no mask)."""
+    from metegs.losses.robust import RobustMaskConfig
+
+    heavy = tiny_metegs(tmp_path / "heavy", max_steps=1).setup()  # 20 mm/h and 400 m
+    assert heavy.fit_quantile == RobustMaskConfig().quantile < 0.5
+    assert heavy.decisions["low-quantile fit"].startswith("on: the trimmed L1 fits the 10% quantile")
+    median = tiny_metegs(tmp_path / "median", robust=RobustMaskConfig(quantile=0.5), max_steps=1).setup()
+    assert median.fit_quantile == 0.5 and median.decisions["low-quantile fit"].startswith("off: --robust.quantile")
+    light = tiny_metegs(tmp_path / "light", conditions=ConditionsConfig(precip_mm_h=1.5), max_steps=1).setup()
+    assert light.robust_from is None and "low-quantile fit" not in light.decisions
+
+
 def test_sharp_weather_prunes_opacity_as_3dgs_does(tmp_path):
     """Light rain with no visible medium blurs nothing: the faint Gaussians MeteGS keeps for blurred photos only fit
     single views there (1.1 dB under 3dgs on the Lund street), so training takes 3dgs's threshold and says so; a
