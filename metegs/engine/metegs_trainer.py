@@ -96,15 +96,13 @@ class MeteGSTrainer(Trainer):
         self.method_optimizers = self._method_optimizers()
 
     def _setup_robust(self) -> None:
-        """The robust mask (`robust_from`) where rain heavier than light falls, and the quantile of a pixel's photos
-        that its L1 fits there (`fit_quantile`)."""
+        """The robust mask (`robust_from`) where rain heavier than light falls, and with it the low quantile of a
+        pixel's photos that its L1 fits (`RobustMaskConfig.quantile`)."""
         c, r = self.config, self.config.robust
         rain = self.weather_theta(self.scene).rain
         wanted = r.enabled and rain.intensity_class not in LIGHT_OR_NONE
         self.robust_from = int(round(r.start * c.max_steps)) if wanted else None
         """Step from which the weather branch's photometric loss is trimmed to inliers (None: never)."""
-        self.fit_quantile = 0.5
-        """The quantile of a pixel's photos that the trimmed L1 fits (0.5: their median, plain L1)."""
         if not r.enabled:
             self.decide("robust mask", "off")
             return
@@ -120,7 +118,6 @@ class MeteGSTrainer(Trainer):
             f"on from step {self.robust_from}: pixels {'brighter' if r.brighter_only else 'further'} than "
             f"{r.k_sigma:g} robust sigmas of their view's residuals (grown by {r.dilate_px} px) are left out",
         )
-        self.fit_quantile = r.quantile
         if r.quantile == 0.5:
             why = "off: --robust.quantile 0.5 (the L1 fits the median of a pixel's photos)"
         else:
@@ -457,7 +454,7 @@ class MeteGSTrainer(Trainer):
         weights, quantile = None, 0.5
         if self.robust_from is not None and self.step >= self.robust_from:
             weights = inlier_weights(target - render.rgb.detach(), c.robust)
-            quantile = self.fit_quantile
+            quantile = c.robust.quantile
             stats["inliers"] = float(weights.mean())
         loss = c.weights.photo * self.loss_fn(render.rgb, target, weights, quantile)
         for m in self.weather_models:
