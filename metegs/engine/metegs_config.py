@@ -39,8 +39,9 @@ class LossWeights:
     """λ_photo: weather branch against the observed (degraded) photo, (1−λ)·L1 + λ·(1−SSIM)."""
     perceptual: Annotated[float, NON_NEGATIVE] = 0.05
     """λ_perc: clean branch against the clean reference on frozen pretrained features (0: off)."""
-    clean: Annotated[float, NON_NEGATIVE] = 0.1
-    """λ_clean: L1 of the clean branch against the clean reference (0: off)."""
+    clean: Annotated[float, NON_NEGATIVE] = 2.0
+    """λ_clean: the clean branch against the clean reference, with L_photo's (1−λ)·L1 + λ·(1−SSIM), twice the photos'
+    weight: the references hold the scene, the weather models take the rest (0: off)."""
     pseudo: Annotated[float, NON_NEGATIVE] = 0.5
     """λ_pseudo: L1 of the clean branch against the 2D-restored photo (`pseudo_references restore`, blind runs)."""
 

@@ -2,7 +2,7 @@
 
 Weather branch: GTN(G_s, view) ∪ G_w(θ) rendered in one rasterisation, then the medium and lens effects,
 fit to the observed (degraded) photo with (1−λ)·L1 + λ·(1−SSIM) plus the weather's coverage prior.
-Clean branch: G_s alone against the clean reference (L1 and a perceptual loss) when references exist.
+Clean branch: G_s alone against the clean reference (the same L1 + SSIM and a perceptual loss) when references exist.
 Evaluation, renders and export use the clean branch only.
 """
 
@@ -86,7 +86,9 @@ class MeteGSTrainer(Trainer):
         elif not c.clean_supervision:
             self.decide("clean branch", "off: --clean-supervision False (blind mode)")
         else:
-            self.decide("clean branch", f"on: L1 weight {c.weights.clean}")
+            self.decide(
+                "clean branch", f"on: 3dgs's L1 + SSIM against the clean references, weight {c.weights.clean:g}"
+            )
         self.pseudo_references = self._restore_training_photos()
         """Training view -> its photo restored in 2D [H, W, 3] (`pseudo_references`; empty: off)."""
         self.perceptual = self._build_perceptual()
@@ -286,12 +288,19 @@ class MeteGSTrainer(Trainer):
         from metegs.models.gtn import GaussianTransformationNetwork
 
         c = self.config
-        if not (c.gtn.enabled and c.weather_branch):
-            self.decide("gtn", "off" + ("" if c.weather_branch else ": no weather branch"))
+        if c.gtn.mode == "off" or not c.weather_branch:
+            self.decide("gtn", "off: " + ("--gtn.mode off" if c.weather_branch else "no weather branch"))
             return None
         sharp = self._sharp_weather()
         if sharp is not None:
             self.decide("gtn", f"off: {sharp}, and per-view growth would only absorb the scene's detail")
+            return None
+        if c.gtn.mode == "auto" and not self.use_clean:
+            self.decide(
+                "gtn",
+                "off: blind training (--gtn.mode on adds it): no clean reference holds the scene's sharpness, so its "
+                "per-view growth fits what the views disagree on, which the clean scene then lacks",
+            )
             return None
         centre = self.dataset.cameras[self.dataset.train_indices].camera_to_worlds[:, :3, 3].mean(0)
         gtn = GaussianTransformationNetwork(c.gtn, centre, self.extent).to(self.device)
@@ -357,7 +366,7 @@ class MeteGSTrainer(Trainer):
 
     def make_densifier(self):
         """The configured densification with depth-aware pruning (`depth_prune`) as its pruning rule, and without
-        opacity resets where the GTN works with no rain to clear, or where the fog is dense over an SfM cloud
+        opacity resets where a visible medium dims the views with no rain to clear, or where the fog is dense over an SfM cloud
         (`DENSE_OPTICAL_DEPTH`)."""
         from metegs.densify.depth_prune import DepthAwarePruning
 
@@ -383,7 +392,7 @@ class MeteGSTrainer(Trainer):
         densifier, rain = build(densify), self.weather_theta(self.scene).rain
         if not getattr(densifier, "reset_every", 0):
             return densifier
-        if self.gtn is not None and rain.intensity_class in LIGHT_OR_NONE:
+        if sharp is None and rain.intensity_class in LIGHT_OR_NONE:
             why = f"{rain_phrase(rain)} leaves no streaks for resets to clear, and under the fog a reset costs "
             why += "Gaussians that its dimmed gradients hardly regrow"
         elif self.medium_optical_depth >= DENSE_OPTICAL_DEPTH and not self.random_init:
@@ -473,7 +482,7 @@ class MeteGSTrainer(Trainer):
             clean = self.clean_branch(index, background)
             reference = self.reference(index, background)
             if c.weights.clean > 0:
-                loss = loss + c.weights.clean * (clean - reference).abs().mean()
+                loss = loss + c.weights.clean * self.loss_fn(clean, reference)
             if self.perceptual is not None:
                 loss = loss + c.weights.perceptual * self.perceptual(
                     clean, target_features=self._reference_features(index, reference)

@@ -332,12 +332,20 @@ def test_typical_depth_is_the_median_distance_of_points_in_front():
     assert veil_fraction(0.0, 50.0) == 0.0
 
 
-def test_light_rain_switches_off_the_gtn_and_the_robust_mask(tmp_path):
+def test_light_rain_switches_off_the_gtn_and_the_robust_mask_and_blind_training_the_gtn(tmp_path):
     light = tiny_metegs(tmp_path / "light", conditions=ConditionsConfig(precip_mm_h=1.5), max_steps=1).setup()
     assert light.gtn is None and light.decisions["gtn"].startswith("off: light rain")
     assert light.robust_from is None and light.decisions["robust mask"].startswith("off: light rain")
     heavy = tiny_metegs(tmp_path / "heavy", max_steps=1).setup()  # 20 mm/h and 400 m: blur and bright streaks
     assert heavy.gtn is not None and heavy.decisions["gtn"].startswith("on")
+    # blind, nothing holds the scene's sharpness: the GTN stays off unless asked for
+    blind = tiny_metegs(tmp_path / "blind", clean_supervision=False, max_steps=1).setup()
+    assert blind.gtn is None and blind.decisions["gtn"].startswith("off: blind training")
+    assert "gtn" not in blind.method_optimizers
+    asked = tiny_metegs(tmp_path / "asked", clean_supervision=False, max_steps=1, gtn=GTNConfig(mode="on")).setup()
+    assert asked.gtn is not None and asked.decisions["gtn"].startswith("on")
+    off = tiny_metegs(tmp_path / "off", max_steps=1, gtn=GTNConfig(mode="off")).setup()
+    assert off.gtn is None and off.decisions["gtn"] == "off: --gtn.mode off"
     assert heavy.robust_from is not None and heavy.decisions["robust mask"].startswith("on")
 
 
@@ -405,6 +413,12 @@ def test_opacity_resets_stay_on_with_the_gtn_where_it_rains_under_thin_fog(tmp_p
     foggy = tiny_metegs(tmp_path / "fog", max_steps=3000, densify=ADCConfig(), conditions=fog).setup()
     assert foggy.gtn is not None and foggy.densifier.reset_every == 0
     assert foggy.decisions["opacity reset"].startswith("off: no rain leaves no streaks")
+    # the rule follows the weather, not the GTN: blind training, without it, keeps them off too
+    blind = tiny_metegs(
+        tmp_path / "blind", max_steps=3000, densify=ADCConfig(), conditions=fog, clean_supervision=False
+    )
+    blind = blind.setup()
+    assert blind.gtn is None and blind.densifier.reset_every == 0
 
 
 def test_view_exposure_auto_is_off_beside_a_fog_model_and_3dgs_s_rule_without(tmp_path):
@@ -462,6 +476,29 @@ def test_pseudo_references_hold_a_blind_clean_branch_to_the_restored_photos(tmp_
     assert torch.allclose(held - free, 0.5 * l1, atol=1e-6)
     trainer.config.weights.pseudo = 0.5
     trainer.train()
+
+
+def test_clean_references_hold_the_clean_branch_with_the_photo_loss(tmp_path):
+    # with references the clean branch is trained as 3dgs trains on clean photos: L1 + SSIM, at twice the photos'
+    # weight (an L1 at 0.1 left the built-in default 1.5 dB under 3dgs on its clean photos)
+    from metegs.engine.metegs_config import LossWeights
+    from metegs.losses.photometric import PhotometricLossConfig
+
+    trainer = tiny_metegs(tmp_path, weights=LossWeights(perceptual=0.0), max_steps=3).setup()
+    assert trainer.use_clean and trainer.config.weights.clean == 2.0
+    assert trainer.decisions["clean branch"].startswith("on: 3dgs's L1 + SSIM")
+    i = trainer.dataset.train_indices[0]
+    bg = trainer.background(training=True)
+    render = trainer.photo_render(i, bg)
+    with torch.no_grad():
+        held = trainer.step_loss(i, bg, render, trainer.target(i, bg), {})
+        trainer.config.weights.clean = 0.0
+        free = trainer.step_loss(i, bg, render, trainer.target(i, bg), {})
+        clean, reference = trainer.clean_branch(i, bg), trainer.reference(i, bg)
+        l1 = (clean - reference).abs().mean()
+        expected = PhotometricLossConfig(ssim_lambda=trainer.config.loss.ssim_lambda).setup()(clean, reference)
+    assert torch.allclose(held - free, 2.0 * expected, atol=1e-6)
+    assert float(held - free) > 2.1 * float((1 - trainer.config.loss.ssim_lambda) * l1)  # the SSIM term counts
 
 
 def test_pseudo_references_stay_off_where_clean_references_hold_the_clean_branch(tmp_path):
