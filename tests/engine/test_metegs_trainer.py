@@ -466,16 +466,22 @@ def test_pseudo_references_hold_a_blind_clean_branch_to_the_restored_photos(tmp_
     assert torch.allclose(trainer.pseudo_references[i], torch.from_numpy(expected))
     assert (trainer.pseudo_references[i] - trainer.dataset.images[i]).abs().mean() > 0.01  # restoring changed it
     # the term is the weighted L1 of the clean branch against the restored photo
-    bg = trainer.background(training=True)
-    render = trainer.photo_render(i, bg)
     with torch.no_grad():
-        held = trainer.step_loss(i, bg, render, trainer.target(i, bg), {})
-        trainer.config.weights.pseudo = 0.0
-        free = trainer.step_loss(i, bg, render, trainer.target(i, bg), {})
-        l1 = (trainer.clean_branch(i, bg) - trainer.pseudo_references[i]).abs().mean()
-    assert torch.allclose(held - free, 0.5 * l1, atol=1e-6)
-    trainer.config.weights.pseudo = 0.5
+        l1 = (trainer.clean_branch(i, trainer.background(training=True)) - trainer.pseudo_references[i]).abs().mean()
+    assert torch.allclose(loss_term(trainer, i, "pseudo"), 0.5 * l1, atol=1e-6)
     trainer.train()
+
+
+def loss_term(trainer, index: int, weight: str) -> torch.Tensor:
+    """What the term of loss weight ``weight`` (a `LossWeights` field) adds to view ``index``'s step loss."""
+    weights, bg = trainer.config.weights, trainer.background(training=True)
+    render, kept = trainer.photo_render(index, bg), getattr(trainer.config.weights, weight)
+    with torch.no_grad():
+        held = trainer.step_loss(index, bg, render, trainer.target(index, bg), {})
+        setattr(weights, weight, 0.0)
+        free = trainer.step_loss(index, bg, render, trainer.target(index, bg), {})
+    setattr(weights, weight, kept)
+    return held - free
 
 
 def test_clean_references_hold_the_clean_branch_with_the_photo_loss(tmp_path):
@@ -487,18 +493,15 @@ def test_clean_references_hold_the_clean_branch_with_the_photo_loss(tmp_path):
     trainer = tiny_metegs(tmp_path, weights=LossWeights(perceptual=0.0), max_steps=3).setup()
     assert trainer.use_clean and trainer.config.weights.clean == 2.0
     assert trainer.decisions["clean branch"].startswith("on: 3dgs's L1 + SSIM")
-    i = trainer.dataset.train_indices[0]
-    bg = trainer.background(training=True)
-    render = trainer.photo_render(i, bg)
+    i, bg = trainer.dataset.train_indices[0], trainer.background(training=True)
     with torch.no_grad():
-        held = trainer.step_loss(i, bg, render, trainer.target(i, bg), {})
-        trainer.config.weights.clean = 0.0
-        free = trainer.step_loss(i, bg, render, trainer.target(i, bg), {})
         clean, reference = trainer.clean_branch(i, bg), trainer.reference(i, bg)
         l1 = (clean - reference).abs().mean()
         expected = PhotometricLossConfig(ssim_lambda=trainer.config.loss.ssim_lambda).setup()(clean, reference)
-    assert torch.allclose(held - free, 2.0 * expected, atol=1e-6)
-    assert float(held - free) > 2.1 * float((1 - trainer.config.loss.ssim_lambda) * l1)  # the SSIM term counts
+    term = loss_term(trainer, i, "clean")
+    assert torch.allclose(term, 2.0 * expected, atol=1e-6)
+    # the SSIM term counts: the term is more than the L1 part alone
+    assert float(term) > 2.1 * float((1 - trainer.config.loss.ssim_lambda) * l1)
 
 
 def test_pseudo_references_stay_off_where_clean_references_hold_the_clean_branch(tmp_path):
