@@ -288,17 +288,17 @@ class MeteGSTrainer(Trainer):
         from metegs.models.gtn import GaussianTransformationNetwork
 
         c = self.config
-        if c.gtn.mode == "off" or not c.weather_branch:
-            self.decide("gtn", "off: " + ("--gtn.mode off" if c.weather_branch else "no weather branch"))
+        if not (c.gtn.enabled and c.weather_branch):
+            self.decide("gtn", "off" + ("" if c.weather_branch else ": no weather branch"))
             return None
         sharp = self._sharp_weather()
         if sharp is not None:
             self.decide("gtn", f"off: {sharp}, and per-view growth would only absorb the scene's detail")
             return None
-        if c.gtn.mode == "auto" and not self.use_clean:
+        if not (self.use_clean or c.gtn.blind):
             self.decide(
                 "gtn",
-                "off: blind training (--gtn.mode on adds it): no clean reference holds the scene's sharpness, so its "
+                "off: blind training (--gtn.blind adds it): no clean reference holds the scene's sharpness, so its "
                 "per-view growth fits what the views disagree on, which the clean scene then lacks",
             )
             return None

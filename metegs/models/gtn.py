@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Annotated, Literal
+from typing import Annotated
 
 import torch
 from torch import nn
@@ -32,10 +32,11 @@ from metegs.validate import NON_NEGATIVE, Range
 class GTNConfig:
     """The Gaussian Transformation Network of the weather branch."""
 
-    mode: Literal["auto", "on", "off"] = "auto"
-    """auto: in the weather branch where the weather blurs the photos and clean references hold the scene, not in
-    blind training (there it cost 0.15-0.9 dB on a real street); on: wherever the weather blurs the photos; off:
-    the weather branch renders the scene Gaussians as they are."""
+    enabled: bool = True
+    """Use the GTN in the weather branch where the weather blurs the photos (off: the weather branch renders the scene
+    Gaussians as they are)."""
+    blind: bool = False
+    """Use it in blind training too (without clean references it cost 0.15-0.9 dB on a real street, six runs)."""
     position_frequencies: Annotated[int, NON_NEGATIVE] = 3
     """Frequencies of the positional encoding of the Gaussian position."""
     view_frequencies: Annotated[int, NON_NEGATIVE] = 10

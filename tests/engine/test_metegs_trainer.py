@@ -342,10 +342,10 @@ def test_light_rain_switches_off_the_gtn_and_the_robust_mask_and_blind_training_
     blind = tiny_metegs(tmp_path / "blind", clean_supervision=False, max_steps=1).setup()
     assert blind.gtn is None and blind.decisions["gtn"].startswith("off: blind training")
     assert "gtn" not in blind.method_optimizers
-    asked = tiny_metegs(tmp_path / "asked", clean_supervision=False, max_steps=1, gtn=GTNConfig(mode="on")).setup()
+    asked = tiny_metegs(tmp_path / "asked", clean_supervision=False, max_steps=1, gtn=GTNConfig(blind=True)).setup()
     assert asked.gtn is not None and asked.decisions["gtn"].startswith("on")
-    off = tiny_metegs(tmp_path / "off", max_steps=1, gtn=GTNConfig(mode="off")).setup()
-    assert off.gtn is None and off.decisions["gtn"] == "off: --gtn.mode off"
+    off = tiny_metegs(tmp_path / "off", max_steps=1, gtn=GTNConfig(enabled=False)).setup()
+    assert off.gtn is None and off.decisions["gtn"] == "off"
     assert heavy.robust_from is not None and heavy.decisions["robust mask"].startswith("on")
 
 
