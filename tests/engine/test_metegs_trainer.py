@@ -475,7 +475,7 @@ def test_pseudo_references_hold_a_blind_clean_branch_to_the_restored_photos(tmp_
 def loss_term(trainer, index: int, weight: str) -> torch.Tensor:
     """What the term of loss weight ``weight`` (a `LossWeights` field) adds to view ``index``'s step loss."""
     weights, bg = trainer.config.weights, trainer.background(training=True)
-    render, kept = trainer.photo_render(index, bg), getattr(trainer.config.weights, weight)
+    render, kept = trainer.photo_render(index, bg), getattr(weights, weight)
     with torch.no_grad():
         held = trainer.step_loss(index, bg, render, trainer.target(index, bg), {})
         setattr(weights, weight, 0.0)
