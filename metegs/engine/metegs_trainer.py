@@ -41,6 +41,14 @@ def rain_phrase(rain) -> str:
     )
 
 
+def sharp_weather(rain, has_medium: bool) -> str | None:
+    """Why nothing in the weather of θ_rain ``rain`` blurs the photos (light or no rain, and no visible medium:
+    ``has_medium`` False), or None."""
+    if rain.intensity_class in LIGHT_OR_NONE and not has_medium:
+        return f"{rain_phrase(rain)} and no visible medium: nothing in this weather blurs the photos"
+    return None
+
+
 DENSE_OPTICAL_DEPTH = LN20 / 3
 """Optical depth β·d above which fog is dense at depth d: its visibility (the meteorological optical range, where
 the contrast falls to 5 %) is at most 3× d. Opacity resets stay off there when the Gaussians start from an SfM
@@ -143,7 +151,7 @@ class MeteGSTrainer(Trainer):
             images=ds.images,
             seed=model_seed(c.seed),
         )
-        models, depth_m = [], None
+        built, depth_m = [], None
         for name in c.weather:
             config = c.weather_config(name)
             model = config.setup(theta=theta, scene=scene).to(self.device)
@@ -165,15 +173,26 @@ class MeteGSTrainer(Trainer):
                         "notices: the photos cannot tell it from the surfaces' colours; removing it could only bias them",
                     )
                     continue
-            self.active_kinds.add(kind_of(name))
             if isinstance(model, FogAnalytic):
                 self._decide_record_prior(name, model)
+            built.append((name, model))
+        sharp = sharp_weather(theta.rain, any(hasattr(m, "extinction_per_m") for _, m in built))
+        models = []
+        for name, model in built:
             if getattr(model, "transient", False):
+                if sharp is not None and kind_of(name) == "rain":
+                    self.decide(
+                        f"weather {name}",
+                        f"off: {sharp}: 3dgs averages its few faint streaks away, and learnable ones left the clean "
+                        "render no cleaner",
+                    )
+                    continue
                 model = LearnableTransients(model, list(ds.train_indices), c.learnable_weather)
                 count = sum(len(v.means) for v in model.views.values()) / max(len(model.views), 1)
                 self.decide(f"weather {name}", f"on: {count:.0f} learnable Gaussians per training view")
             else:
                 self.decide(f"weather {name}", "on")
+            self.active_kinds.add(kind_of(name))
             models.append(model)
         return models
 
@@ -314,10 +333,7 @@ class MeteGSTrainer(Trainer):
 
     def _sharp_weather(self) -> str | None:
         """Why nothing in this weather blurs the photos (light or no rain, no visible medium), or None."""
-        rain = self.weather_theta(self.scene).rain
-        if rain.intensity_class in LIGHT_OR_NONE and not self.has_medium:
-            return f"{rain_phrase(rain)} and no visible medium: nothing in this weather blurs the photos"
-        return None
+        return sharp_weather(self.weather_theta(self.scene).rain, self.has_medium)
 
     def _make_exposure(self):
         """3dgs's per-view tone, but with `view_exposure` auto off beside a fog model (its airlight and β set each
@@ -357,6 +373,8 @@ class MeteGSTrainer(Trainer):
             # Deblurring-3DGS fills the sparse regions of an SfM point cloud; random points have none, and on the
             # Ethiopian head (random init) the extra points cost 0.8 dB of test PSNR at 1000 steps.
             self.decide("extra points", "off: the Gaussians started from random points (no SfM cloud to compensate)")
+        elif c.extra_points and (sharp := self._sharp_weather()) is not None:
+            self.decide("extra points", f"off: {sharp}, so no blur left the SfM cloud sparse to compensate")
         elif c.extra_points:
             points = self.model.params["means"].detach().clone()
             self.extra_points = ExtraPointCompensation(c.extra_points_options, c.max_steps, self.extent, points)
@@ -365,13 +383,15 @@ class MeteGSTrainer(Trainer):
             self.decide("extra points", "off")
 
     def make_densifier(self):
-        """The configured densification with depth-aware pruning (`depth_prune`) as its pruning rule, and without
-        opacity resets where a visible medium dims the views with no rain to clear, or where the fog is dense over an SfM cloud
-        (`DENSE_OPTICAL_DEPTH`)."""
+        """The configured densification with depth-aware pruning (`depth_prune`) as its pruning rule where the weather
+        blurs the photos, and without opacity resets where a visible medium dims the views with no rain to clear, or
+        where the fog is dense over an SfM cloud (`DENSE_OPTICAL_DEPTH`)."""
         from metegs.densify.depth_prune import DepthAwarePruning
 
-        c, rule = self.config, None
-        if c.depth_prune:
+        c, rule, sharp = self.config, None, self._sharp_weather()
+        if c.depth_prune and sharp is not None:
+            self.decide("depth pruning", f"off: {sharp}, so 3dgs's uniform opacity threshold holds the far Gaussians")
+        elif c.depth_prune:
             rule = DepthAwarePruning(c.depth_prune_options, self.dataset.cameras[self.dataset.train_indices]).thresholds
             self.decide("depth pruning", f"on ({c.depth_prune_options.depth_mode} depth)")
         else:
@@ -381,7 +401,7 @@ class MeteGSTrainer(Trainer):
             views = len(self.dataset.train_indices)
             return options.setup(max_steps=c.max_steps, extent=self.extent, num_train_views=views, prune_rule=rule)
 
-        densify, sharp = c.densify, self._sharp_weather()
+        densify = c.densify
         if sharp is not None and densify.prune_opacity == BLURRED_PRUNE_OPACITY:
             densify = replace(densify, prune_opacity=SHARP_PRUNE_OPACITY)
             self.decide(
