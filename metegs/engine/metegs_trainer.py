@@ -176,15 +176,17 @@ class MeteGSTrainer(Trainer):
             if isinstance(model, FogAnalytic):
                 self._decide_record_prior(name, model)
             built.append((name, model))
-        sharp = sharp_weather(theta.rain, any(hasattr(m, "extinction_per_m") for _, m in built))
+        sharp = (
+            None if self.use_clean else sharp_weather(theta.rain, any(hasattr(m, "extinction_per_m") for _, m in built))
+        )
         models = []
         for name, model in built:
             if getattr(model, "transient", False):
                 if sharp is not None and kind_of(name) == "rain":
                     self.decide(
                         f"weather {name}",
-                        f"off: {sharp}: 3dgs averages its few faint streaks away, and learnable ones left the clean "
-                        "render no cleaner",
+                        f"off: {sharp}: blind, 3dgs averages its few faint streaks away, and learnable ones left "
+                        "the clean render no cleaner",
                     )
                     continue
                 model = LearnableTransients(model, list(ds.train_indices), c.learnable_weather)
@@ -373,8 +375,8 @@ class MeteGSTrainer(Trainer):
             # Deblurring-3DGS fills the sparse regions of an SfM point cloud; random points have none, and on the
             # Ethiopian head (random init) the extra points cost 0.8 dB of test PSNR at 1000 steps.
             self.decide("extra points", "off: the Gaussians started from random points (no SfM cloud to compensate)")
-        elif c.extra_points and (sharp := self._sharp_weather()) is not None:
-            self.decide("extra points", f"off: {sharp}, so no blur left the SfM cloud sparse to compensate")
+        elif c.extra_points and not self.use_clean and (sharp := self._sharp_weather()) is not None:
+            self.decide("extra points", f"off: {sharp}, so, blind, no blur left the SfM cloud sparse to compensate")
         elif c.extra_points:
             points = self.model.params["means"].detach().clone()
             self.extra_points = ExtraPointCompensation(c.extra_points_options, c.max_steps, self.extent, points)
@@ -389,8 +391,8 @@ class MeteGSTrainer(Trainer):
         from metegs.densify.depth_prune import DepthAwarePruning
 
         c, rule, sharp = self.config, None, self._sharp_weather()
-        if c.depth_prune and sharp is not None:
-            self.decide("depth pruning", f"off: {sharp}, so 3dgs's uniform opacity threshold holds the far Gaussians")
+        if c.depth_prune and sharp is not None and not self.use_clean:
+            self.decide("depth pruning", f"off: {sharp}, so, blind, 3dgs's opacity threshold holds the far Gaussians")
         elif c.depth_prune:
             rule = DepthAwarePruning(c.depth_prune_options, self.dataset.cameras[self.dataset.train_indices]).thresholds
             self.decide("depth pruning", f"on ({c.depth_prune_options.depth_mode} depth)")
