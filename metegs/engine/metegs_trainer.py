@@ -41,14 +41,6 @@ def rain_phrase(rain) -> str:
     )
 
 
-def sharp_weather(rain, has_medium: bool) -> str | None:
-    """Why nothing in the weather of θ_rain ``rain`` blurs the photos (light or no rain, and no visible medium:
-    ``has_medium`` False), or None."""
-    if rain.intensity_class in LIGHT_OR_NONE and not has_medium:
-        return f"{rain_phrase(rain)} and no visible medium: nothing in this weather blurs the photos"
-    return None
-
-
 DENSE_OPTICAL_DEPTH = LN20 / 3
 """Optical depth β·d above which fog is dense at depth d: its visibility (the meteorological optical range, where
 the contrast falls to 5 %) is at most 3× d. Opacity resets stay off there when the Gaussians start from an SfM
@@ -176,9 +168,7 @@ class MeteGSTrainer(Trainer):
             if isinstance(model, FogAnalytic):
                 self._decide_record_prior(name, model)
             built.append((name, model))
-        sharp = (
-            None if self.use_clean else sharp_weather(theta.rain, any(hasattr(m, "extinction_per_m") for _, m in built))
-        )
+        sharp = self._blind_sharp_weather([m for _, m in built])
         models = []
         for name, model in built:
             if getattr(model, "transient", False):
@@ -331,11 +321,26 @@ class MeteGSTrainer(Trainer):
     @property
     def has_medium(self) -> bool:
         """Whether a weather model with a medium (fog, rain veil) is on."""
-        return any(hasattr(m, "extinction_per_m") for m in self.weather_models)
+        return self._with_medium(self.weather_models)
 
-    def _sharp_weather(self) -> str | None:
-        """Why nothing in this weather blurs the photos (light or no rain, no visible medium), or None."""
-        return sharp_weather(self.weather_theta(self.scene).rain, self.has_medium)
+    @staticmethod
+    def _with_medium(models: list[WeatherModel]) -> bool:
+        """Whether one of ``models`` is a medium (fog, rain veil)."""
+        return any(hasattr(m, "extinction_per_m") for m in models)
+
+    def _sharp_weather(self, models: list[WeatherModel] | None = None) -> str | None:
+        """Why nothing in this weather blurs the photos (light or no rain, and no medium among ``models``, the
+        weather models that are on by default), or None."""
+        rain = self.weather_theta(self.scene).rain
+        medium = self._with_medium(self.weather_models if models is None else models)
+        if rain.intensity_class in LIGHT_OR_NONE and not medium:
+            return f"{rain_phrase(rain)} and no visible medium: nothing in this weather blurs the photos"
+        return None
+
+    def _blind_sharp_weather(self, models: list[WeatherModel] | None = None) -> str | None:
+        """`_sharp_weather` in blind training, None beside clean references: where the run leaves out the learnable
+        streaks, the extra points and depth-aware pruning (with references they pay even in light rain)."""
+        return None if self.use_clean else self._sharp_weather(models)
 
     def _make_exposure(self):
         """3dgs's per-view tone, but with `view_exposure` auto off beside a fog model (its airlight and β set each
@@ -375,7 +380,7 @@ class MeteGSTrainer(Trainer):
             # Deblurring-3DGS fills the sparse regions of an SfM point cloud; random points have none, and on the
             # Ethiopian head (random init) the extra points cost 0.8 dB of test PSNR at 1000 steps.
             self.decide("extra points", "off: the Gaussians started from random points (no SfM cloud to compensate)")
-        elif c.extra_points and not self.use_clean and (sharp := self._sharp_weather()) is not None:
+        elif c.extra_points and (sharp := self._blind_sharp_weather()) is not None:
             self.decide("extra points", f"off: {sharp}, so, blind, no blur left the SfM cloud sparse to compensate")
         elif c.extra_points:
             points = self.model.params["means"].detach().clone()
@@ -390,9 +395,11 @@ class MeteGSTrainer(Trainer):
         where the fog is dense over an SfM cloud (`DENSE_OPTICAL_DEPTH`)."""
         from metegs.densify.depth_prune import DepthAwarePruning
 
-        c, rule, sharp = self.config, None, self._sharp_weather()
-        if c.depth_prune and sharp is not None and not self.use_clean:
-            self.decide("depth pruning", f"off: {sharp}, so, blind, 3dgs's opacity threshold holds the far Gaussians")
+        c, rule, sharp, blind_sharp = self.config, None, self._sharp_weather(), self._blind_sharp_weather()
+        if c.depth_prune and blind_sharp is not None:
+            self.decide(
+                "depth pruning", f"off: {blind_sharp}, so, blind, 3dgs's opacity threshold holds the far Gaussians"
+            )
         elif c.depth_prune:
             rule = DepthAwarePruning(c.depth_prune_options, self.dataset.cameras[self.dataset.train_indices]).thresholds
             self.decide("depth pruning", f"on ({c.depth_prune_options.depth_mode} depth)")
