@@ -91,6 +91,10 @@ class TrainConfig(InstantiateConfig):
     (the built-in one, Blender), whose views share one exposure."""
     background: Literal["black", "white", "random"] = "black"
     """Background colour behind the Gaussians during training (evaluation uses black, or white for 'white')."""
+    drop_gaussians: Annotated[float, Range(0, 1, hi_open=True)] = 0.0
+    """Leave a random share of the Gaussians out of each training step's renders, the rest's opacity scaled by
+    1 / (1 - share) (DropGaussian), growing from 0 to this at the last step, on photos without visible weather:
+    Gaussians seen from few views are fitted by more of them (0.1 suits sparse walk-through captures); 0: off."""
     eval_every: Annotated[float, FRACTION] = 0.25
     """Evaluate the test views every this fraction of the run (0: only at the end)."""
     checkpoint_every: Annotated[int, NON_NEGATIVE] = 1000

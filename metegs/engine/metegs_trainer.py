@@ -25,21 +25,10 @@ from metegs.models.gtn import may_be_visible
 from metegs.render import RenderSettings
 from metegs.weather.base import WeatherModel, WeatherScene, model_seed
 from metegs.weather.compose import render_with_weather
+from metegs.weather.conditions import LIGHT_OR_NONE, rain_phrase
 from metegs.weather.fog_analytic import FogAnalytic
 from metegs.weather.kinds import kind_of
 from metegs.weather.learnable import LearnableTransients
-
-LIGHT_OR_NONE = ("none", "light")
-"""WMO rain classes whose streaks neither blur the photos nor stand out of them: the GTN and the robust mask stay off
-(measured on the built-in scene under independent light rain: each cost 1.6-2.4 dB against leaving it off)."""
-
-
-def rain_phrase(rain) -> str:
-    """``no rain`` or ``light rain (1.5 mm/h)``: the rain of θ_rain in a decision."""
-    return (
-        "no rain" if rain.intensity_class == "none" else f"{rain.intensity_class} rain ({rain.precip_mm_per_h:g} mm/h)"
-    )
-
 
 DENSE_OPTICAL_DEPTH = LN20 / 3
 """Optical depth β·d above which fog is dense at depth d: its visibility (the meteorological optical range, where
@@ -337,6 +326,11 @@ class MeteGSTrainer(Trainer):
             return f"{rain_phrase(rain)} and no visible medium: nothing in this weather blurs the photos"
         return None
 
+    def visible_weather(self) -> str | None:
+        """The weather of θ a person would see in the photos: MeteGS takes its θ (the shipped storm record where
+        none is stated) as the capture's weather."""
+        return self._weather_of_theta()
+
     def _blind_sharp_weather(self, models: list[WeatherModel] | None = None) -> str | None:
         """`_sharp_weather` in blind training, None beside clean references: where the run leaves out the learnable
         streaks, the extra points and depth-aware pruning (with references they pay even in light rain)."""
@@ -471,7 +465,7 @@ class MeteGSTrainer(Trainer):
         """Weather-branch render of view ``index`` (GTN only while training) -> WeatherRender."""
         settings = RenderSettings(background=background, sh_degree=self.model.active_sh_degree)
         camera = self.dataset.cameras[index]
-        scene = self.model.activated()
+        scene = self.step_gaussians() if training else self.model.activated()
         if training and self.gtn is not None:  # only where the view can see: the rest would stay unseen anyway
             only = may_be_visible(scene, camera, self.config.gtn.max_factor, settings.near)
             scene = self.gtn(scene, camera.camera_to_worlds[0, :3, 3], only)
@@ -521,9 +515,7 @@ class MeteGSTrainer(Trainer):
     def clean_branch(self, index: int, background: torch.Tensor) -> torch.Tensor:
         """[H, W, 3] the scene alone in training view ``index``, in its photo's tone: the clean reference is that
         photo without the weather, taken with the same exposure (`view_exposure`)."""
-        settings = RenderSettings(background=background, sh_degree=self.model.active_sh_degree)
-        clean = self.rasterizer.render(self.model.activated(), self.dataset.cameras[index], settings)
-        return self.as_photographed(clean.rgb, index)
+        return self.as_photographed(self.render(index, training=True, background=background).rgb, index)
 
     def step_optimizers(self) -> list[torch.optim.Optimizer]:
         """The Gaussians' optimisers and the method's (GTN, weather)."""

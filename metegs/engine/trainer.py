@@ -35,7 +35,8 @@ from metegs.engine.optim import adam, make_optimizers, means_lr_at
 from metegs.engine.progress import TrainProgress
 from metegs.errors import ConfigError, DataError, Interrupted
 from metegs.files import atomic_write_text, write_result
-from metegs.gaussians.model import GaussianModel
+from metegs.gaussians.dropout import drop_gaussians, drop_rate_at
+from metegs.gaussians.model import GaussianModel, GaussianSet
 from metegs.meteo import Theta
 from metegs.models.exposure import ViewExposure
 from metegs.render import RenderOutput, RenderSettings, make_rasterizer
@@ -169,6 +170,8 @@ class Trainer:
         self.run_dir = Path(run_dir) if run_dir is not None else self._default_run_dir()
         """The run folder; a default one is claimed (made new, never reused) when training starts."""
         self.setup_method()
+        self.drop_rate = self._decide_drop_rate()
+        """The share of Gaussians `step_gaussians` leaves out by the last step."""
         self.exposure, self.exposure_optimizer = self._make_exposure()  # after the method: it may decide
         self.densifier = self.make_densifier()
         if ckpt is not None:
@@ -180,6 +183,45 @@ class Trainer:
         self.decisions[key] = text
         if self.console is not None:
             self.console.print(f"[dim]{key}:[/] {text}")
+
+    def visible_weather(self) -> str | None:
+        """The weather a person would see in the training photos (`weather.medium.visible_weather`), or None: θ says
+        where the run degrades its scene or the conditions state the capture's weather; else the photos are taken
+        as clear (the shipped storm record only stands in for a method that models weather)."""
+        if not (self.degrade_kinds(self.scene) or self.config.conditions.stated):
+            return None
+        return self._weather_of_theta()
+
+    def _weather_of_theta(self) -> str | None:
+        """`weather.medium.visible_weather` of the run's θ at the scene's typical depth."""
+        from metegs.weather.conditions import scene_metres_per_unit
+        from metegs.weather.medium import typical_depth_m, visible_weather
+
+        mpu = scene_metres_per_unit(self.config.conditions, self.scene.metric_scale)
+        depth_m = typical_depth_m(self.dataset.cameras, self.scene.points, mpu)
+        return visible_weather(self.weather_theta(self.scene), depth_m)
+
+    def _decide_drop_rate(self) -> float:
+        """`drop_gaussians` where the photos are clear; 0 where they show weather (`visible_weather`)."""
+        rate = self.config.drop_gaussians
+        if rate <= 0:
+            self.decide("drop gaussians", "off (--drop-gaussians 0.1 turns it on)")
+            return 0.0
+        weather = self.visible_weather()
+        if weather is not None:
+            self.decide(
+                "drop gaussians",
+                f"off: {weather}: on photos with weather it lost more than it gained (3dgs and restoration + 3dgs "
+                "on the Lund street under fog or rain + fog: -0.2 to -0.7 dB; blind MeteGS on the built-in scene: "
+                "-1.0 dB)",
+            )
+            return 0.0
+        self.decide(
+            "drop gaussians",
+            f"on: each training render leaves out a random share of the Gaussians, rising to {rate:.0%} by the "
+            "last step",
+        )
+        return rate
 
     def weather_kinds(self) -> set[str]:
         """Weather kinds the method models (``degrade=auto`` synthesises these); plain 3DGS models none."""
@@ -365,10 +407,23 @@ class Trainer:
         return min(step // every, self.model.max_sh_degree)
 
     def render(self, index: int, training: bool = False, background: torch.Tensor | None = None):
-        """Render dataset view ``index`` with the current model."""
+        """Render dataset view ``index`` with the current model (``training``: the step's Gaussians,
+        `step_gaussians`)."""
         bg = self.background(training) if background is None else background
         settings = RenderSettings(background=bg, sh_degree=self.model.active_sh_degree)
-        return self.rasterizer.render(self.model.activated(), self.dataset.cameras[index], settings)
+        scene = self.step_gaussians() if training else self.model.activated()
+        return self.rasterizer.render(scene, self.dataset.cameras[index], settings)
+
+    def step_gaussians(self) -> GaussianSet:
+        """The Gaussians every render of the current training step draws: all of them, less a random share that
+        grows to `drop_gaussians` over the run (one draw per step, from the seed and the step, so a resumed run
+        draws the same)."""
+        gaussians = self.model.activated()
+        rate = drop_rate_at(self.step, self.config.max_steps, self.drop_rate)
+        if rate <= 0:
+            return gaussians
+        generator = torch.Generator().manual_seed(self.config.seed * 1_000_003 + self.step)
+        return drop_gaussians(gaussians, rate, generator)
 
     def target(self, index: int, background: torch.Tensor) -> torch.Tensor:
         """The photo of view ``index`` [H, W, 3]; with masks, masked-out pixels take the background colour."""
@@ -427,7 +482,7 @@ class Trainer:
 
     def photo_render(self, index: int, background: torch.Tensor) -> StepRender:
         """The render of training view ``index`` that its photo judges: the scene's, as photographed."""
-        out = self.render(index, background=background)
+        out = self.render(index, training=True, background=background)
         return StepRender(self.as_photographed(out.rgb, index), out)
 
     def as_photographed(self, rgb: torch.Tensor, index: int) -> torch.Tensor:

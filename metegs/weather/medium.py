@@ -10,7 +10,7 @@ from metegs.cameras import Cameras
 from metegs.meteo.mapping import Theta
 from metegs.weather.airlight import estimate_airlight
 from metegs.weather.base import WeatherScene
-from metegs.weather.conditions import scene_depth_m
+from metegs.weather.conditions import LIGHT_OR_NONE, rain_phrase, scene_depth_m
 
 
 def fog_extinction_rgb(theta: Theta, include_rain_veil: bool) -> torch.Tensor:
@@ -49,6 +49,20 @@ def typical_depth_m(
     if dist.numel() == 0:
         return scene_depth_m(cameras, metres_per_unit)
     return float(dist.median()) * metres_per_unit
+
+
+def visible_weather(theta: Theta, depth_m: float) -> str | None:
+    """What of ``theta``'s weather a person would see in the photos, as a phrase: rain heavier than light, or a
+    medium (fog, the rain's veil) over clear air that takes at least `VISIBLE_CONTRAST_LOSS` of a surface's contrast
+    at the scene's typical depth ``depth_m`` (`typical_depth_m`); None for clear air or light rain alone."""
+    rain = theta.rain
+    if rain.intensity_class not in LIGHT_OR_NONE:
+        return rain_phrase(rain)
+    beta = theta.fog.beta_veil_per_m - theta.fog.beta_background_per_m
+    veil = veil_fraction(beta, depth_m)
+    if veil >= VISIBLE_CONTRAST_LOSS:
+        return f"a medium taking {veil:.0%} of the contrast at the scene's typical depth ({depth_m:.0f} m)"
+    return None
 
 
 MEASURABLE_DISTANCE_SPREAD = 1.5
