@@ -70,14 +70,19 @@ def test_ctrl_c_saves_a_checkpoint_and_names_it(tmp_path):
     cmd = [*TRAIN, "--max-steps", "100000", "--checkpoint-every", "0", "--output-dir", str(tmp_path),
            "--experiment-name", "run"]  # fmt: skip
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    first = tmp_path / "synthetic/3dgs/run/checkpoints/step-000000.ckpt"
-    deadline = time.monotonic() + 120
-    while not first.exists():
-        assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()[1][-2000:]
-        time.sleep(0.05)
-    time.sleep(1.0)  # some steps
-    proc.send_signal(signal.SIGINT)
-    _, err = proc.communicate(timeout=120)
+    try:
+        first = tmp_path / "synthetic/3dgs/run/checkpoints/step-000000.ckpt"
+        deadline = time.monotonic() + 120
+        while not first.exists():
+            assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()[1][-2000:]
+            time.sleep(0.05)
+        time.sleep(1.0)  # some steps
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:  # a failed wait must not leave a 100000-step run training beside the suite
+            proc.kill()
+            proc.communicate()
     assert proc.returncode == 130, err[-2000:]
     assert "Traceback" not in err
     flat = " ".join(err.split())
