@@ -78,7 +78,12 @@ def test_ctrl_c_saves_a_checkpoint_and_names_it(tmp_path):
             time.sleep(0.05)
         time.sleep(1.0)  # some steps
         proc.send_signal(signal.SIGINT)
-        _, err = proc.communicate(timeout=120)
+        try:
+            _, err = proc.communicate(timeout=120)
+        except subprocess.TimeoutExpired:  # say where it stood: still training, or stopped and stuck on its way out
+            proc.kill()
+            out, err = proc.communicate()
+            pytest.fail(f"no exit within 120 s of Ctrl-C; stdout: {out[-1500:]}\nstderr: {err[-1500:]}")
     finally:
         if proc.poll() is None:  # a failed wait must not leave a 100000-step run training beside the suite
             proc.kill()
