@@ -472,10 +472,13 @@ class MeteGSTrainer(Trainer):
         return render_with_weather(self.rasterizer, scene, self.weather_models, index, camera, settings)
 
     def photo_render(self, index: int, background: torch.Tensor) -> StepRender:
-        """The weather branch: the scene through the GTN with the weather, as photographed, judged by the photo."""
+        """The weather branch: the scene through the GTN with the weather, as photographed, judged by the photo; and
+        where clean references hold the scene, the clean branch's render of the same step. Densification reads both
+        (weather Gaussians excluded): the weather branch's gradients alone, dimmed by the fog and pulled by the
+        streaks, left a scene judged by clean references with too few Gaussians."""
         weather = self.render_weather(index, background, training=True)
-        # densification follows the photo fit only: weather Gaussians excluded
-        return StepRender(self.as_photographed(weather.rgb, index), weather.out, weather.num_scene)
+        clean = self.render(index, training=True, background=background) if self._clean_loss_on else None
+        return StepRender(self.as_photographed(weather.rgb, index), weather.out, weather.num_scene, clean)
 
     def step_loss(
         self, index: int, background: torch.Tensor, render: StepRender, target: torch.Tensor, stats: dict[str, float]
@@ -501,8 +504,8 @@ class MeteGSTrainer(Trainer):
         if index in self.pseudo_references and c.weights.pseudo > 0:
             pseudo = self._masked(index, self.pseudo_references[index], background)
             loss = loss + c.weights.pseudo * (self.clean_branch(index, background) - pseudo).abs().mean()
-        if self.use_clean and (c.weights.clean > 0 or self.perceptual is not None):
-            clean = self.clean_branch(index, background)
+        if self._clean_loss_on:
+            clean = self.as_photographed(render.clean.rgb, index)
             reference = self.reference(index, background)
             if c.weights.clean > 0:
                 loss = loss + c.weights.clean * self.loss_fn(clean, reference)
@@ -511,6 +514,11 @@ class MeteGSTrainer(Trainer):
                     clean, target_features=self._reference_features(index, reference)
                 )
         return loss
+
+    @property
+    def _clean_loss_on(self) -> bool:
+        """Whether clean references judge the clean branch this run (its L1 + SSIM or its perceptual term)."""
+        return self.use_clean and (self.config.weights.clean > 0 or self.perceptual is not None)
 
     def clean_branch(self, index: int, background: torch.Tensor) -> torch.Tensor:
         """[H, W, 3] the scene alone in training view ``index``, in its photo's tone: the clean reference is that

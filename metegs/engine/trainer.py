@@ -75,6 +75,9 @@ class StepRender:
     """The rasterisation behind it, whose screen-space gradients densification reads."""
     num_scene: int | None = None
     """How many of ``out``'s Gaussians are scene Gaussians, the first ones (None: all)."""
+    clean: RenderOutput | None = None
+    """The scene alone in the same view where a clean reference judges it too (MeteGS's clean branch), whose
+    screen-space gradients densification also reads."""
 
 
 def seed_everything(seed: int) -> None:
@@ -471,6 +474,8 @@ class Trainer:
         loss = self.step_loss(index, bg, render, target, stats)
         loss.backward()
         self.densifier.update_stats(self.model, render.out, render.num_scene)
+        if render.clean is not None:
+            self.densifier.update_stats(self.model, render.clean)
         for opt in self.step_optimizers():
             opt.step()
             opt.zero_grad(set_to_none=True)

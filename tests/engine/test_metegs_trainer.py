@@ -535,6 +535,23 @@ def test_clean_references_hold_the_clean_branch_with_the_photo_loss(tmp_path):
     assert float(term) > 2.1 * float((1 - trainer.config.loss.ssim_lambda) * l1)
 
 
+def test_densification_reads_the_clean_branch_where_clean_references_hold_it(tmp_path):
+    # with the photo's weight at 0 only the clean branch moves the scene, so only its screen-space gradients can
+    # reach the densification statistics; the weather branch's alone left the head under rain + fog with a third
+    # fewer Gaussians than 3dgs on its clean photos
+    from metegs.engine.metegs_config import LossWeights
+
+    for clean_supervision, reads in ((True, 2), (False, 1)):
+        trainer = tiny_metegs(
+            tmp_path / str(clean_supervision), weights=LossWeights(photo=0.0, perceptual=0.0),
+            clean_supervision=clean_supervision, max_steps=3,
+        ).setup()  # fmt: skip
+        trainer.train_step(trainer.dataset.train_indices[0])
+        state = trainer.densifier.state
+        assert int(state.count.max()) == reads  # one read per render of the scene: weather branch (and clean)
+        assert (float(state.grad_sum.sum()) > 0) == clean_supervision
+
+
 def test_pseudo_references_stay_off_where_clean_references_hold_the_clean_branch(tmp_path):
     trainer = tiny_metegs(tmp_path, pseudo_references="restore", max_steps=3).setup()
     assert trainer.pseudo_references == {}
