@@ -5,7 +5,7 @@ Three ops, each the equivalent of a torch reference stage (and tested against it
 `gaussian_colors`), ``csrc/binning.cpp`` (depth-sorted tile lists with an exact ellipse-tile test;
 reference: `bin_gaussians`) and ``csrc/composite.cpp`` (tile compositing, `CompositeTiles`; reference:
 `torch_backend.composite_tiles`); beside them ``csrc/ssim.cpp``, the training loss's SSIM map with its backward
-(`metegs.losses.fused_ssim`). The extension is compiled with `torch.utils.cpp_extension` on first use (about a minute)
+(`metegs.losses.fused_ssim`). The extension is compiled with `torch.utils.cpp_extension` on first use (about 50 s on 2 cores)
 and cached in ``~/.cache/metegs/torch_extensions/<torch version>/<cpu tag>/`` (``$XDG_CACHE_HOME``
 is honoured, ``METEGS_EXTENSIONS_DIR`` overrides the whole path); later processes only load it. x86 intrinsics are
 used only where the compiler targets them, and never with ``METEGS_CPU_PORTABLE=1`` (`machine_cflags`).
@@ -252,7 +252,7 @@ def build_extension(name: str, sources: list[Path], build_dir: Path, what: str):
             or " ".join(cflags) not in ninja_file.read_text(errors="replace")
         )
         if stale:
-            print(f"compiling {what} (first use, ~1 min) in {build_dir} ...", file=sys.stderr, flush=True)
+            print(f"compiling {what} (first use, under a minute) in {build_dir} ...", file=sys.stderr, flush=True)
         return cpp_extension.load(
             name=name,
             sources=[str(src / f.name) for f in sources],

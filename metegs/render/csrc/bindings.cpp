@@ -1,6 +1,8 @@
 // Python bindings of the metegs `cpu` rasteriser extension.
 #include "metegs_cpu.h"
 
+#include <torch/csrc/utils/pybind.h>  // pybind11 with at::Tensor's casters, without the whole C++ API
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   // The ops release the GIL while they run, as torch's own ops do: other Python threads (the live viewer's
   // server, a benchmark's memory sampler) go on meanwhile.

@@ -14,6 +14,8 @@
 
 #include "metegs_cpu.h"
 
+#include <torch/csrc/utils/pybind.h>  // pybind11 with at::Tensor's casters, without the whole C++ API
+
 #include <chrono>
 
 namespace metegs_cpu {
