@@ -9,6 +9,12 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
     # threads each on a 2-core machine slow each other down many times over.
     torch.set_num_threads(1)
 
+if "METEGS_EXTENSIONS_DIR" not in os.environ:
+    # Tests that point $XDG_CACHE_HOME at a temporary folder must not build the kernels again there (about 50 s
+    # each): the build stays in the cache this session found (tests of the folder's choice unset this).
+    from metegs.render.cpu_backend import build_directory
+
+    os.environ["METEGS_EXTENSIONS_DIR"] = str(build_directory())
 
 import pytest  # noqa: E402
 

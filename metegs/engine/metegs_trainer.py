@@ -358,9 +358,7 @@ class MeteGSTrainer(Trainer):
 
         loss, reason = try_load_perceptual(c.perceptual, self.device)
         if loss is None:
-            self.decide("perceptual", f"off: {reason}")
-            if self.console is not None:
-                self.console.print(f"[yellow]warning:[/] perceptual loss switched off: {reason}")
+            self.decide("perceptual", f"off: {reason}", warn=True)
             return None
         self.decide("perceptual", f"on: {loss.backbone_name} features, weight {c.weights.perceptual}")
         return loss

@@ -181,11 +181,12 @@ class Trainer:
             self._restore_state(ckpt)
 
     # --- setup -------------------------------------------------------------------------------------
-    def decide(self, key: str, text: str) -> None:
-        """Record (and print once) a choice the run made about what to do or skip."""
+    def decide(self, key: str, text: str, warn: bool = False) -> None:
+        """Record (and print once) a choice the run made about what to do or skip; ``warn``: as a warning (a part
+        the user asked for is off)."""
         self.decisions[key] = text
         if self.console is not None:
-            self.console.print(f"[dim]{key}:[/] {text}")
+            self.console.print(f"{'[yellow]warning:[/] ' if warn else ''}[dim]{key}:[/] {text}")
 
     def visible_weather(self) -> str | None:
         """The weather a person would see in the training photos (`weather.medium.visible_weather`), or None: θ says
@@ -326,9 +327,7 @@ class Trainer:
             import pycolmap  # noqa: F401 - triangulation's one dependency that a trimmed install may lack
         except ImportError:
             why = "pycolmap is not installed to triangulate points from the views (pip install pycolmap)"
-            self.decide("init", f"random Gaussians: {why}")
-            if self.console is not None:
-                self.console.print(f"[yellow]warning:[/] starting from random Gaussians: {why}")
+            self.decide("init", f"random Gaussians: {why}", warn=True)
             return None
         from metegs.config import scene_cache
         from metegs.data.triangulate import CACHE_DIR, triangulate_known_poses

@@ -556,3 +556,27 @@ def test_pseudo_references_stay_off_where_clean_references_hold_the_clean_branch
     trainer = tiny_metegs(tmp_path, pseudo_references="restore", max_steps=3).setup()
     assert trainer.pseudo_references == {}
     assert trainer.decisions["pseudo references"].startswith("off: the clean references")
+
+
+def test_a_perceptual_loss_without_weights_is_said_once_as_a_warning(tmp_path, monkeypatch):
+    """Clean references ask for the perceptual term; with no weights anywhere (and no download) the run says why it
+    is off in one warning line, the decision itself, not twice."""
+    from rich.console import Console
+
+    from metegs.losses.perceptual import PERCEPTUAL_ENV, PerceptualLossConfig
+
+    hub = torch.hub.get_dir()
+    torch.hub.set_dir(str(tmp_path / "hub"))
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    monkeypatch.delenv(PERCEPTUAL_ENV, raising=False)
+    console = Console(record=True, width=1000)
+    try:
+        config = tiny_metegs(tmp_path, perceptual=PerceptualLossConfig(download=False), max_steps=2)
+        trainer = config.setup(console=console)
+    finally:
+        torch.hub.set_dir(hub)
+    decision = trainer.decisions["perceptual"]
+    assert trainer.use_clean and trainer.perceptual is None and decision.startswith("off: ")
+    text = console.export_text()
+    assert text.count(decision[len("off: ") :]) == 1, text
+    assert f"warning: perceptual: {decision}" in text
