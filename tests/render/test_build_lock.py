@@ -66,7 +66,7 @@ LOAD = "from metegs.bench.peak import PROBE; PROBE.load(); print('loaded')"
 def test_a_build_killed_half_way_does_not_hang_the_next(tmp_path):
     """kill -9 of a first build (compiler processes included) while it holds torch's lock: the next load builds
     and loads the extension instead of waiting forever. The extension is the peak probe (`metegs.bench.peak`),
-    built by the same `build_extension` as the kernels from one small source: a third of their build time."""
+    built by the same `build_extension` as the kernels from one small source, in about half their build time."""
     env = dict(os.environ, METEGS_EXTENSIONS_DIR=str(tmp_path))
     build_dir = tmp_path / "peak-probe"
     first = subprocess.Popen([sys.executable, "-c", LOAD], env=env, start_new_session=True,
