@@ -190,21 +190,24 @@ class MeteGSTrainer(Trainer):
             self.decide("pseudo references", "off: no rain or fog model is on, so there is nothing to restore")
             return {}
         from metegs.restore import restorer_for_kinds
+        from metegs.restore.cache import cached_restore, restored_cache_dir
 
         restorer = restorer_for_kinds(kinds)
         views = list(self.dataset.train_indices)
-        restored = {}
+        restored, cached = {}, 0
         status = self.console.status("") if self.console is not None else contextlib.nullcontext()
         with status as shown:
             for n, i in enumerate(views):
                 if shown is not None:
                     shown.update(f"restoring the training photos in 2D ({restorer.name}): {n}/{len(views)}")
                 photo = self.dataset.images[i].detach().cpu().numpy()
-                restored[i] = torch.from_numpy(restorer.restore(photo)).to(self.device)
+                image, was_cached = cached_restore(restorer, photo)
+                restored[i] = torch.from_numpy(image).to(self.device)
+                cached += was_cached
         self.decide(
             "pseudo references",
             f"on: the clean branch is held to the {len(views)} training photos restored by {restorer.name} "
-            f"(L1 weight {self.config.weights.pseudo})",
+            f"({cached} read from {restored_cache_dir()}; L1 weight {self.config.weights.pseudo})",
         )
         return restored
 

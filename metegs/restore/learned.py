@@ -126,6 +126,8 @@ class LearnedRestorer:
         path = Path(path).expanduser()
         if not path.is_file():
             raise ConfigError(f"restorer {config.slot!r}: weights file {path} not found")
+        self.weights_path = path
+        """The network's weights file (part of `cache_key`)."""
         self.device = torch.device(config.device)
         net = self._load(path).to(self.device)
         self.net = net.eval() if hasattr(net, "eval") and not path.suffix == ".pt2" else net

@@ -1,5 +1,6 @@
 """The per-view 2D restorers: dark channel prior dehazing, Kang et al. deraining, the learned slots."""
 
+import os
 import warnings
 
 import numpy as np
@@ -188,3 +189,69 @@ def test_learned_slot_loads_a_state_dict_with_an_arch(tmp_path):
     np.testing.assert_allclose(restorer.restore(img), img, atol=1e-6)
     with pytest.raises(ConfigError, match="cannot import"):
         make_restorer("restormer", weights=str(path), arch="nowhere.module:Net")
+
+
+class _Counting:
+    """A restorer that darkens by ``gain`` and counts its calls."""
+
+    removes = frozenset({"fog"})
+
+    def __init__(self, name="counting", gain=0.5):
+        self.name, self.calls = name, 0
+        self.config = {"gain": gain}
+
+    def restore(self, image):
+        self.calls += 1
+        return image * self.config["gain"]
+
+
+def test_restored_photos_are_kept_between_runs_per_photo_and_settings(tmp_path):
+    from metegs.restore.cache import cached_restore
+
+    img, other = textured(21, 30, seed=0), textured(21, 30, seed=1)
+    first = _Counting()
+    out, was_cached = cached_restore(first, img, tmp_path)
+    assert not was_cached and first.calls == 1
+    np.testing.assert_array_equal(out, img * 0.5)
+    again = _Counting()  # a later run: a new restorer object with the same settings
+    out2, was_cached = cached_restore(again, img, tmp_path)
+    assert was_cached and again.calls == 0
+    np.testing.assert_array_equal(out2, out)
+    # another photo, another option, another restorer: restored anew, never another's result
+    for restorer, photo, expected in (
+        (_Counting(), other, other * 0.5),
+        (_Counting(gain=0.25), img, img * 0.25),
+        (_Counting(name="other"), img, img * 0.5),
+    ):
+        result, was_cached = cached_restore(restorer, photo, tmp_path)
+        assert not was_cached and restorer.calls == 1
+        np.testing.assert_array_equal(result, expected)
+    assert len(list(tmp_path.glob("*.npy"))) == 4
+
+
+def test_a_damaged_cache_entry_is_restored_again(tmp_path):
+    from metegs.restore.cache import cached_restore
+
+    img = textured(21, 30)
+    cached_restore(_Counting(), img, tmp_path)
+    (entry,) = tmp_path.glob("*.npy")
+    entry.write_bytes(entry.read_bytes()[:100])  # truncated
+    restorer = _Counting()
+    out, was_cached = cached_restore(restorer, img, tmp_path)
+    assert not was_cached and restorer.calls == 1
+    np.testing.assert_array_equal(out, img * 0.5)
+    np.testing.assert_array_equal(np.load(entry), img * 0.5)  # and replaced
+
+
+def test_a_learned_restorers_cache_follows_its_weights_file(tmp_path):
+    from metegs.restore.cache import cache_key
+
+    path = tmp_path / "net.pt2"
+    program = torch.export.export(_Scale(), (torch.rand(1, 3, 24, 32),))
+    torch.export.save(program, str(path))
+    img = textured(24, 32)
+    key = cache_key(make_restorer("restormer", weights=str(path)), img)
+    assert key == cache_key(make_restorer("restormer", weights=str(path)), img)
+    torch.export.save(program, str(path))  # the file written again (new weights, say)
+    os.utime(path, ns=(1, 1))
+    assert key != cache_key(make_restorer("restormer", weights=str(path)), img)

@@ -485,12 +485,19 @@ def test_view_exposure_on_takes_each_photo_s_tone_in_both_branches(tmp_path):
     assert float(trainer.exposure.offsets.detach().abs()[:, 1].sum()) > 0  # the offsets learned from the photos
 
 
-def test_pseudo_references_hold_a_blind_clean_branch_to_the_restored_photos(tmp_path):
+def test_pseudo_references_hold_a_blind_clean_branch_to_the_restored_photos(tmp_path, monkeypatch):
     from metegs.restore import restorer_for_kinds
 
-    trainer = tiny_metegs(tmp_path, clean_supervision=False, pseudo_references="restore", max_steps=3).setup()
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    config = tiny_metegs(tmp_path, clean_supervision=False, pseudo_references="restore", max_steps=3)
+    trainer = config.setup()
     assert trainer.active_kinds >= {"rain", "fog"}
     assert trainer.decisions["pseudo references"].startswith("on: the clean branch is held to the 10 training")
+    assert "(0 read from" in trainer.decisions["pseudo references"]
+    # a second run restores nothing: the photos come from the cache, the same to the bit
+    again = config.setup()
+    assert "(10 read from" in again.decisions["pseudo references"]
+    assert all(torch.equal(again.pseudo_references[i], trainer.pseudo_references[i]) for i in trainer.pseudo_references)
     assert set(trainer.pseudo_references) == set(trainer.dataset.train_indices)
     i = trainer.dataset.train_indices[0]
     expected = restorer_for_kinds("rain+fog").restore(trainer.dataset.images[i].numpy())
