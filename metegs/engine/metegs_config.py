@@ -43,7 +43,8 @@ class LossWeights:
     """λ_clean: the clean branch against the clean reference, with L_photo's (1−λ)·L1 + λ·(1−SSIM), twice the photos'
     weight: the references hold the scene, the weather models take the rest (0: off)."""
     pseudo: Annotated[float, NON_NEGATIVE] = 0.5
-    """λ_pseudo: L1 of the clean branch against the 2D-restored photo (`pseudo_references restore`, blind runs)."""
+    """λ_pseudo: L1 of the clean branch's detail against the 2D-restored photo's (`pseudo_references restore`, blind
+    runs; `pseudo_detail_px`)."""
 
 
 @dataclass
@@ -74,7 +75,10 @@ class MeteGSConfig(TrainConfig):
     one, whose airlight and β set each view's tone too (the comparison's 3dgs run gets the same setting)."""
     pseudo_references: Literal["off", "restore"] = "off"
     """Blind runs: restore each training photo in 2D (Kang 2012 for rain, DCP for fog: the active weather's kinds) and
-    hold the clean branch to it at weight `weights.pseudo`, as if it were the photo's clean reference."""
+    hold the clean branch's detail to the restored photo's at weight `weights.pseudo` (`pseudo_detail_px`)."""
+    pseudo_detail_px: Annotated[int, NON_NEGATIVE] = 15
+    """Box width in pixels: the pseudo-reference L1 compares x − box(x), the detail a 2D restorer gets right
+    (streaks out, edges kept), not its tone, which the weather models set (0: the whole restored photo)."""
     densify: ADCConfig = field(default_factory=lambda: ADCConfig(prune_opacity=BLURRED_PRUNE_OPACITY))
     """Densification; pruning keeps Deblurring-3DGS's base threshold 0.005, which depth-aware pruning lowers
     for far Gaussians (3dgs's 0.1 costs blind MeteGS 0.9 dB on the default run; where nothing blurs the photos,

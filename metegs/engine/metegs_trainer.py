@@ -19,6 +19,7 @@ from metegs.engine.optim import adam
 from metegs.engine.trainer import StepRender, Trainer
 from metegs.errors import ConfigError
 from metegs.losses.dark_channel import dark_channel_loss
+from metegs.losses.photometric import box_detail
 from metegs.losses.robust import inlier_weights
 from metegs.meteo.physics import LN20
 from metegs.models.gtn import may_be_visible
@@ -204,9 +205,11 @@ class MeteGSTrainer(Trainer):
                 image, was_cached = cached_restore(restorer, photo)
                 restored[i] = torch.from_numpy(image).to(self.device)
                 cached += was_cached
+        width = self.config.pseudo_detail_px
+        held = f"detail (x - its {width | 1}-px box mean)" if width > 0 else "colours"
         self.decide(
             "pseudo references",
-            f"on: the clean branch is held to the {len(views)} training photos restored by {restorer.name} "
+            f"on: the clean branch's {held} is held to the {len(views)} training photos restored by {restorer.name} "
             f"({cached} read from {restored_cache_dir()}; L1 weight {self.config.weights.pseudo})",
         )
         return restored
@@ -503,8 +506,9 @@ class MeteGSTrainer(Trainer):
             stats["dark_channel"] = float(dark.detach())
             loss = loss + c.dark_channel.weight * dark
         if index in self.pseudo_references and c.weights.pseudo > 0:
-            pseudo = self._masked(index, self.pseudo_references[index], background)
-            loss = loss + c.weights.pseudo * (self.clean_branch(index, background) - pseudo).abs().mean()
+            pseudo = box_detail(self._masked(index, self.pseudo_references[index], background), c.pseudo_detail_px)
+            clean = box_detail(self.clean_branch(index, background), c.pseudo_detail_px)
+            loss = loss + c.weights.pseudo * (clean - pseudo).abs().mean()
         if self._clean_loss_on:
             clean = self.as_photographed(render.clean.rgb, index)
             reference = self.reference(index, background)

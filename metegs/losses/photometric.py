@@ -61,3 +61,18 @@ def pinball_l1(pred: torch.Tensor, target: torch.Tensor, quantile: float = 0.5) 
         return (pred - target).abs()
     residual = target - pred
     return 2.0 * torch.maximum(quantile * residual, (quantile - 1.0) * residual)
+
+
+def box_detail(image: torch.Tensor, width: int) -> torch.Tensor:
+    """[H, W, C] -> [H, W, C]: ``image`` minus its mean over the ``width`` × ``width`` box around each pixel (at the
+    borders, the mean of the pixels inside the image): the detail a box filter takes away, without the tone. An
+    even ``width`` is taken as the odd one above it; 0 returns ``image`` as it is."""
+    if width <= 0:
+        return image
+    k = width | 1
+    x = image.permute(2, 0, 1)[None]
+    pool = torch.nn.functional.avg_pool2d
+    # one row pass and one column pass: the clipped box's mean is the mean of the clipped row means (2k, not k²)
+    rows = pool(x, (1, k), stride=1, padding=(0, k // 2), count_include_pad=False)
+    mean = pool(rows, (k, 1), stride=1, padding=(k // 2, 0), count_include_pad=False)
+    return (x - mean)[0].permute(1, 2, 0)

@@ -486,13 +486,15 @@ def test_view_exposure_on_takes_each_photo_s_tone_in_both_branches(tmp_path):
 
 
 def test_pseudo_references_hold_a_blind_clean_branch_to_the_restored_photos(tmp_path, monkeypatch):
+    from metegs.losses.photometric import box_detail
     from metegs.restore import restorer_for_kinds
 
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
     config = tiny_metegs(tmp_path, clean_supervision=False, pseudo_references="restore", max_steps=3)
     trainer = config.setup()
     assert trainer.active_kinds >= {"rain", "fog"}
-    assert trainer.decisions["pseudo references"].startswith("on: the clean branch is held to the 10 training")
+    assert trainer.decisions["pseudo references"].startswith("on: the clean branch's detail (x - its 15-px box mean)")
+    assert "held to the 10 training photos" in trainer.decisions["pseudo references"]
     assert "(0 read from" in trainer.decisions["pseudo references"]
     # a second run restores nothing: the photos come from the cache, the same to the bit
     again = config.setup()
@@ -503,10 +505,18 @@ def test_pseudo_references_hold_a_blind_clean_branch_to_the_restored_photos(tmp_
     expected = restorer_for_kinds("rain+fog").restore(trainer.dataset.images[i].numpy())
     assert torch.allclose(trainer.pseudo_references[i], torch.from_numpy(expected))
     assert (trainer.pseudo_references[i] - trainer.dataset.images[i]).abs().mean() > 0.01  # restoring changed it
-    # the term is the weighted L1 of the clean branch against the restored photo
+    # the term is the weighted L1 of the clean branch's detail against the restored photo's: blind to their tone
     with torch.no_grad():
-        l1 = (trainer.clean_branch(i, trainer.background(training=True)) - trainer.pseudo_references[i]).abs().mean()
+        clean = trainer.clean_branch(i, trainer.background(training=True))
+    reference = trainer.pseudo_references[i]
+    l1 = (box_detail(clean, 15) - box_detail(reference, 15)).abs().mean()
     assert torch.allclose(loss_term(trainer, i, "pseudo"), 0.5 * l1, atol=1e-6)
+    trainer.pseudo_references[i] = reference + 0.2  # a brighter restoration, the same detail: the same term
+    assert torch.allclose(loss_term(trainer, i, "pseudo"), 0.5 * l1, atol=1e-5)
+    trainer.pseudo_references[i] = reference
+    trainer.config.pseudo_detail_px = 0  # the whole photo: its colours count too
+    assert torch.allclose(loss_term(trainer, i, "pseudo"), 0.5 * (clean - reference).abs().mean(), atol=1e-6)
+    trainer.config.pseudo_detail_px = 15
     trainer.train()
 
 
