@@ -42,6 +42,16 @@ def _no_downloads(monkeypatch):
     monkeypatch.setattr(backbones, "FAILED_DOWNLOADS", {})
 
 
+@pytest.fixture(autouse=True)
+def _private_restored_cache(monkeypatch, tmp_path_factory):
+    """Photos restored by tests (pseudo-references, the suite's restoration baseline) go to a folder of the test's,
+    never into the user's cache."""
+    from metegs.restore import cache
+
+    folder = tmp_path_factory.mktemp("restored")
+    monkeypatch.setattr(cache, "restored_cache_dir", lambda: folder)
+
+
 PLUGINS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "plugins")
 """The example plugin packages (plugins/)."""
 

@@ -202,9 +202,9 @@ class MeteGSTrainer(Trainer):
                 if shown is not None:
                     shown.update(f"restoring the training photos in 2D ({restorer.name}): {n}/{len(views)}")
                 photo = self.dataset.images[i].detach().cpu().numpy()
-                image, was_cached = cached_restore(restorer, photo)
-                restored[i] = torch.from_numpy(image).to(self.device)
-                cached += was_cached
+                result = cached_restore(restorer, photo)
+                restored[i] = torch.from_numpy(result.image).to(self.device)
+                cached += result.cached
         width = self.config.pseudo_detail_px
         held = f"detail (x - its {width | 1}-px box mean)" if width > 0 else "colours"
         self.decide(

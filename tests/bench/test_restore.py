@@ -210,23 +210,24 @@ def test_restored_photos_are_kept_between_runs_per_photo_and_settings(tmp_path):
 
     img, other = textured(21, 30, seed=0), textured(21, 30, seed=1)
     first = _Counting()
-    out, was_cached = cached_restore(first, img, tmp_path)
-    assert not was_cached and first.calls == 1
+    out, seconds, was_cached = cached_restore(first, img, tmp_path)
+    assert not was_cached and first.calls == 1 and seconds >= 0
     np.testing.assert_array_equal(out, img * 0.5)
     again = _Counting()  # a later run: a new restorer object with the same settings
-    out2, was_cached = cached_restore(again, img, tmp_path)
+    out2, seconds2, was_cached = cached_restore(again, img, tmp_path)
     assert was_cached and again.calls == 0
     np.testing.assert_array_equal(out2, out)
+    assert seconds2 == seconds  # the time its restoring took, not the reading's
     # another photo, another option, another restorer: restored anew, never another's result
     for restorer, photo, expected in (
         (_Counting(), other, other * 0.5),
         (_Counting(gain=0.25), img, img * 0.25),
         (_Counting(name="other"), img, img * 0.5),
     ):
-        result, was_cached = cached_restore(restorer, photo, tmp_path)
+        result, _, was_cached = cached_restore(restorer, photo, tmp_path)
         assert not was_cached and restorer.calls == 1
         np.testing.assert_array_equal(result, expected)
-    assert len(list(tmp_path.glob("*.npy"))) == 4
+    assert len(list(tmp_path.glob("*.npz"))) == 4
 
 
 def test_a_damaged_cache_entry_is_restored_again(tmp_path):
@@ -234,13 +235,16 @@ def test_a_damaged_cache_entry_is_restored_again(tmp_path):
 
     img = textured(21, 30)
     cached_restore(_Counting(), img, tmp_path)
-    (entry,) = tmp_path.glob("*.npy")
-    entry.write_bytes(entry.read_bytes()[:100])  # truncated
-    restorer = _Counting()
-    out, was_cached = cached_restore(restorer, img, tmp_path)
-    assert not was_cached and restorer.calls == 1
-    np.testing.assert_array_equal(out, img * 0.5)
-    np.testing.assert_array_equal(np.load(entry), img * 0.5)  # and replaced
+    (entry,) = tmp_path.glob("*.npz")
+    whole = entry.read_bytes()
+    for damaged in (whole[:100], whole[: len(whole) // 2], b"not an archive"):
+        entry.write_bytes(damaged)
+        restorer = _Counting()
+        out, _, was_cached = cached_restore(restorer, img, tmp_path)
+        assert not was_cached and restorer.calls == 1
+        np.testing.assert_array_equal(out, img * 0.5)
+        with np.load(entry) as replaced:
+            np.testing.assert_array_equal(replaced["image"], img * 0.5)
 
 
 def test_a_learned_restorers_cache_follows_its_weights_file(tmp_path):

@@ -237,6 +237,27 @@ def _tiny_scene_on_disk(folder: Path) -> Path:
 
 
 @pytest.mark.slow
+def _restoring_again_reads_the_cache(cell: Path, suite, target: Path) -> None:
+    """The suite's restored photos, restored once more into ``target``: every photo is read from the restored cache,
+    reported with the seconds its first restoring took, and written the same."""
+    from metegs.bench.data import restored_dataset
+    from metegs.bench.suite import SuiteRunner
+    from metegs.data.images import load_image
+    from metegs.restore import restorer_for_kinds
+
+    first = json.loads((cell / "restored-kang2012+dcp" / "restore.json").read_text())
+    assert first["views_from_cache"] == 0
+    runner = SuiteRunner(suite, output=cell.parent.parent)
+    (scene,) = [s for s in suite.scenes if s.name == "files"]
+    (method,) = [m for m in suite.methods if m.name == "restore+3dgs"]
+    restorer = restorer_for_kinds("rain+fog", runner.restorer_names(method), method.restorer_options)
+    _, again = restored_dataset(target, cell / "data", runner.dataset_config(scene), restorer)
+    assert again["views_from_cache"] == first["views"]
+    assert again["restore_seconds"] == pytest.approx(first["restore_seconds"], abs=2e-3)
+    for png in sorted((cell / "restored-kang2012+dcp" / "images").iterdir()):
+        np.testing.assert_array_equal(load_image(target / "images" / png.name), load_image(png))
+
+
 def test_a_tiny_suite_runs_resumes_and_reports(tmp_path):
     from metegs.bench.suite import SuiteRunner
 
@@ -296,6 +317,7 @@ def test_a_tiny_suite_runs_resumes_and_reports(tmp_path):
     assert ("synthetic", "rf", "metegs-full") not in by  # scenes filter
     restored = by[("files", "rf", "restore+3dgs")]
     assert restored["restorer"] == "kang2012+dcp" and restored["preprocess_seconds"] > 0
+    _restoring_again_reads_the_cache(out / "files" / "rf", suite, tmp_path / "again")
     for r in results["runs"]:
         if r["status"] == "done":
             assert r["render_fps"] > 0 and r["history"][0]["step"] == 0 and r["history"][0]["time_seconds"] >= 0
