@@ -485,11 +485,10 @@ def test_view_exposure_on_takes_each_photo_s_tone_in_both_branches(tmp_path):
     assert float(trainer.exposure.offsets.detach().abs()[:, 1].sum()) > 0  # the offsets learned from the photos
 
 
-def test_pseudo_references_hold_a_blind_clean_branch_to_the_restored_photos(tmp_path, monkeypatch):
+def test_pseudo_references_hold_a_blind_clean_branch_to_the_restored_photos(tmp_path):
     from metegs.losses.photometric import box_detail
     from metegs.restore import restorer_for_kinds
 
-    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
     config = tiny_metegs(tmp_path, clean_supervision=False, pseudo_references="restore", max_steps=3)
     trainer = config.setup()
     assert trainer.active_kinds >= {"rain", "fog"}
