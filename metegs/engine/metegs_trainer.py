@@ -9,6 +9,7 @@ Evaluation, renders and export use the clean branch only.
 from __future__ import annotations
 
 import contextlib
+import warnings
 from dataclasses import replace
 from pathlib import Path
 
@@ -595,7 +596,16 @@ class MeteGSTrainer(Trainer):
                 m.load_state_dict(state)
         for k, o in self.method_optimizers.items():
             state = ckpt.get("method_optimizers", {}).get(k)
-            if state is not None:
-                o.load_state_dict(state)
+            if state is None:
+                continue
+            saved = [len(g["params"]) for g in state.get("param_groups", [])]
+            if saved != [len(g["params"]) for g in o.param_groups]:  # other parameters learn than when it was saved
+                warnings.warn(
+                    f"{self.resumed_from}: its {k} optimiser moments were saved for other learnable parameters "
+                    f"(groups of {saved}); they start afresh",
+                    stacklevel=2,
+                )
+                continue
+            o.load_state_dict(state)
         if self.extra_points is not None and ckpt.get("extra_points") is not None:
             self.extra_points.load_state_dict(ckpt["extra_points"])

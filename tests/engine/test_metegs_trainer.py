@@ -215,6 +215,28 @@ def test_resume_restores_weather_and_gtn(trained, tmp_path):
     assert again.step == 41
 
 
+def test_a_checkpoint_whose_weather_learned_other_parameters_resumes_with_fresh_moments(tmp_path):
+    """A run saved while fewer weather parameters learned (here β uniform in height; or saved by a version before a
+    parameter existed) continues: its weather loads, the optimiser's moments of the changed group start afresh,
+    said once."""
+    from metegs.weather.fog_analytic import FogAnalyticConfig
+
+    conditions = ConditionsConfig(precip_mm_h=0.0, visibility_m=300.0, metres_per_unit=100.0)
+    uniform = FogAnalyticConfig(layered=False)
+    old = tiny_metegs(tmp_path / "old", conditions=conditions, max_steps=2, checkpoint_every=1, fog_analytic=uniform)
+    old = old.setup()
+    old.train()
+    fog_old = next(m for m in old.weather_models if m.name == "fog-analytic")
+    assert not fog_old.layered
+    ckpt = old.run_dir / "checkpoints" / "step-000002.ckpt"
+    with pytest.warns(UserWarning, match="weather optimiser moments were saved for other learnable parameters"):
+        again = tiny_metegs(tmp_path / "new", conditions=conditions, load_checkpoint=ckpt, max_steps=3).setup()
+    fog = next(m for m in again.weather_models if m.name == "fog-analytic")
+    assert fog.height_rate.requires_grad and torch.equal(fog.log_beta, fog_old.log_beta)
+    again.train()
+    assert again.step == 3 and float(fog.height_rate.detach()) != 0.0
+
+
 def test_a_checkpoint_of_another_gtn_width_is_refused_with_the_flag_to_give(trained, tmp_path):
     from metegs.errors import ConfigError
 
