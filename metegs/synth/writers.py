@@ -8,6 +8,10 @@ Layouts (the clean reference of ``<folder>/<file>`` is ``<folder>_clean/<file>``
 - ``nerfstudio`` / ``blender``: the transforms file(s), point cloud and frames' masks copied, degraded images at the
   frames' paths;
 - ``colmap``: the ``sparse/`` model copied, degraded images in ``images/``;
+
+The points of every layout (the COLMAP model's, a point cloud file, the synthetic scene's) keep their positions
+but take their colours from the degraded photos (`metegs.data.point_colours`): a copy carries nothing of the
+clean photos but the clean references beside them.
 - the synthetic scene (in memory): a nerfstudio dataset, ``transforms.json`` (its split, the points in
   ``points.ply``), ``images/view_NNN.png``, exact depth maps ``depths/view_NNN.npy`` (float32 z-depth, m);
 - a scene whose photos metegs read through undistorted copies (COLMAP or nerfstudio frames with lens
@@ -138,9 +142,9 @@ class DatasetWriter:
             if masks.is_dir():
                 shutil.copytree(masks, self.root / masks.name)
         elif self.format == "colmap":
-            for name in ("sparse",):
-                if (src / name).is_dir():
-                    shutil.copytree(src / name, self.root / name)
+            if (src / "sparse").is_dir():
+                shutil.copytree(src / "sparse", self.root / "sparse")
+                self._recolour_colmap(self.root / "sparse")
         elif self.format == "nerfstudio":
             meta = json.loads(
                 (self.scene.source if Path(self.scene.source).is_file() else src / "transforms.json").read_text()
@@ -150,6 +154,39 @@ class DatasetWriter:
                 if isinstance(rel, str) and rel and (src / rel).is_file() and not (self.root / rel).exists():
                     (self.root / rel).parent.mkdir(parents=True, exist_ok=True)
                     shutil.copy2(src / rel, self.root / rel)
+            if isinstance(meta.get("ply_file_path"), str) and (self.root / meta["ply_file_path"]).is_file():
+                self._recolour_ply(self.root / meta["ply_file_path"])
+
+    def _degraded_images(self) -> list[np.ndarray]:
+        """[H, W, 3] float32 in [0, 1]: every view's degraded image as written."""
+        out = []
+        for rel in self.image_rel:
+            pixels = cv2.imread(str(self.root / rel), cv2.IMREAD_COLOR)
+            if pixels is None:
+                raise DataError(self.root / rel, "cannot read back the degraded image just written")
+            out.append(cv2.cvtColor(pixels, cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0)
+        return out
+
+    def _recolour_colmap(self, sparse: Path) -> None:
+        """Every COLMAP model under ``sparse`` coloured from the degraded images (`recolour_colmap_model`)."""
+        from metegs.data.point_colours import recolour_colmap_model
+
+        written = {PurePosixPath(*PurePosixPath(r).parts[1:]).as_posix(): self.root / r for r in self.image_rel}
+        for points in sorted(sparse.rglob("points3D.*")):
+            if points.suffix in (".bin", ".txt"):
+                recolour_colmap_model(points.parent, written.get)
+
+    def _recolour_ply(self, path: Path) -> None:
+        """The copied point cloud ``path`` coloured from the degraded images, where it holds the scene's points (in
+        their order; the file's own positions and frame are kept)."""
+        from metegs.data.parsers.nerfstudio import read_ply_points
+        from metegs.data.point_colours import colours_seen
+
+        points, _ = read_ply_points(path)
+        if self.scene.points is None or len(points) != len(self.scene.points):
+            return
+        colours = colours_seen(self.scene.points, self.scene.cameras, self._degraded_images())
+        write_ply_points(path, points, colours)
 
     def _write_nerfstudio_from_memory(self, depths: list[np.ndarray] | None) -> None:
         scene = self.scene
@@ -190,7 +227,10 @@ class DatasetWriter:
             },
         }
         if scene.points is not None and len(scene.points):
-            write_ply_points(self.root / "points.ply", scene.points, scene.point_colors)
+            from metegs.data.point_colours import colours_seen
+
+            colours = colours_seen(scene.points, cams, self._degraded_images(), depths)
+            write_ply_points(self.root / "points.ply", scene.points, colours)
             meta["ply_file_path"] = "points.ply"
         (self.root / "transforms.json").write_text(json.dumps(meta, indent=1) + "\n")
 

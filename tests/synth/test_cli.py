@@ -236,6 +236,22 @@ def test_a_nerfstudio_copy_keeps_its_masks_and_points(tmp_path):
     assert back.mask_paths is not None and [p.name for p in back.mask_paths] == [p.name for p in scene.mask_paths]
     assert all(b.read_bytes() == s.read_bytes() for b, s in zip(back.mask_paths, scene.mask_paths))
     np.testing.assert_allclose(back.points, scene.points)
+    from metegs.data.point_colours import colours_seen  # coloured from the degraded photos, not the clean ones
+
+    photos = [cv2.imread(str(p))[..., ::-1].astype(np.float32) / 255 for p in back.image_paths]
+    np.testing.assert_allclose(back.point_colors, colours_seen(scene.points, scene.cameras, photos), atol=1 / 255)
+    assert np.abs(back.point_colors - scene.point_colors).max() > 0.1
+
+
+def test_a_synthetic_copys_points_take_the_colours_of_its_degraded_views(storm):
+    from metegs.data.point_colours import colours_seen
+
+    back, original = parse_scene(storm, None, DatasetConfig()), parse_scene(None, None, TINY)
+    np.testing.assert_allclose(back.points, original.points, atol=1e-6)
+    photos = [cv2.imread(str(p))[..., ::-1].astype(np.float32) / 255 for p in back.image_paths]
+    expected = colours_seen(back.points, back.cameras, photos, back.depths)
+    np.testing.assert_allclose(back.point_colors, expected, atol=1 / 255)
+    assert np.abs(back.point_colors - original.point_colors).mean() > 0.02  # the storm's, not the clean scene's
 
 
 def test_synthetic_copy_reads_back_with_its_scale_exposure_up_and_rendering(storm):
