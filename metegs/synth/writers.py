@@ -8,15 +8,15 @@ Layouts (the clean reference of ``<folder>/<file>`` is ``<folder>_clean/<file>``
 - ``nerfstudio`` / ``blender``: the transforms file(s), point cloud and frames' masks copied, degraded images at the
   frames' paths;
 - ``colmap``: the ``sparse/`` model copied, degraded images in ``images/``;
-
-The points of every layout (the COLMAP model's, a point cloud file, the synthetic scene's) keep their positions
-but take their colours from the degraded photos (`metegs.data.point_colours`): a copy carries nothing of the
-clean photos but the clean references beside them.
 - the synthetic scene (in memory): a nerfstudio dataset, ``transforms.json`` (its split, the points in
   ``points.ply``), ``images/view_NNN.png``, exact depth maps ``depths/view_NNN.npy`` (float32 z-depth, m);
 - a scene whose photos metegs read through undistorted copies (COLMAP or nerfstudio frames with lens
   distortion): the same PINHOLE nerfstudio layout, as the views were trained on (undistorted PNGs, the
   undistorted cameras and masks), since a mirror of the distorted originals would need the weather distorted too.
+
+The points of every layout (the COLMAP model's, a point cloud file, the synthetic scene's) keep their positions
+but take their colours from the degraded photos (`metegs.data.point_colours`): a copy carries nothing of the
+clean photos but the clean references beside them.
 
 Everything is built in a hidden temp folder next to the output and renamed into place at the end: an
 interrupted run leaves no half-written dataset.
