@@ -98,7 +98,6 @@ def test_a_degraded_colmap_copy_colours_its_points_from_the_degraded_photos(tmp_
         0.0, visibility_m=5.0, fog_kind="fog", camera=camera_spec(scene.cameras, capture_width_px=0, far_m=5.0)
     )
     foggy, _ = degrade_scene(scene, theta, kinds="fog", depths=[np.full((H, W), 4.0, np.float32)] * 3)
-    assert np.abs(foggy.point_colors - scene.point_colors).max() > 0.1  # in memory: the fog's colours
     with staged_output(tmp_path / "out") as tmp:
         writer = DatasetWriter(scene, tmp)
         for i in range(3):
