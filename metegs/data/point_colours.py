@@ -62,21 +62,21 @@ def colours_seen(
 
 def recolour_colmap_model(model_dir: Path, image_path: Callable[[str], Path | None]) -> int:
     """Set the colour of every 3D point of the COLMAP model in ``model_dir`` to the mean of its track's pixels in
-    the photos that ``image_path`` maps the model's image names to (None: a photo not there; it is left out), and
-    write the model back in its own format (binary or text) -> the number of points that got a colour from them
-    (the rest turn mid grey)."""
-    import cv2
+    the photos that ``image_path`` maps the model's image names to (None or no such file: that photo is left out),
+    and write the model back in its own format (binary or text) -> the number of points that got a colour from
+    them (the rest turn mid grey)."""
     import pycolmap
+
+    from metegs.data.images import load_image
 
     model = pycolmap.Reconstruction(str(model_dir))
     total: dict[int, np.ndarray] = {}
     count: dict[int, int] = {}
     for image in model.images.values():
         path = image_path(image.name)
-        pixels = None if path is None else cv2.imread(str(path), cv2.IMREAD_COLOR)
-        if pixels is None:
+        if path is None or not Path(path).is_file():
             continue
-        pixels = cv2.cvtColor(pixels, cv2.COLOR_BGR2RGB).astype(np.float64)
+        pixels = load_image(path).astype(np.float64) * 255.0
         camera = model.cameras[image.camera_id]
         sx, sy = pixels.shape[1] / camera.width, pixels.shape[0] / camera.height
         for p in image.points2D:

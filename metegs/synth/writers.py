@@ -159,13 +159,9 @@ class DatasetWriter:
 
     def _degraded_images(self) -> list[np.ndarray]:
         """[H, W, 3] float32 in [0, 1]: every view's degraded image as written."""
-        out = []
-        for rel in self.image_rel:
-            pixels = cv2.imread(str(self.root / rel), cv2.IMREAD_COLOR)
-            if pixels is None:
-                raise DataError(self.root / rel, "cannot read back the degraded image just written")
-            out.append(cv2.cvtColor(pixels, cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0)
-        return out
+        from metegs.data.images import load_image
+
+        return [load_image(self.root / rel) for rel in self.image_rel]
 
     def _recolour_colmap(self, sparse: Path) -> None:
         """Every COLMAP model under ``sparse`` coloured from the degraded images (`recolour_colmap_model`)."""
