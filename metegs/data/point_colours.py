@@ -24,14 +24,27 @@ def colours_seen(
     images: Sequence[np.ndarray],
     depths: Sequence[np.ndarray] | None = None,
     tolerance: float = 0.05,
+    transmittance: Callable[[int], np.ndarray] | None = None,
+    airlight: np.ndarray | None = None,
+    shrink: float = 0.1,
 ) -> np.ndarray:
-    """Mean colour of each point over the views that see it: in the image, in front of the camera and, with
-    ``depths``, not behind the surface a view sees there (z at most (1 + ``tolerance``) times the pixel's depth).
+    """Colour of each point from the views that see it: in the image, in front of the camera and, with ``depths``,
+    not behind the surface a view sees there (z at most (1 + ``tolerance``) times the pixel's depth).
+
+    Without a medium, the mean of what those views show. With ``transmittance`` (view index i -> [P] fraction t of
+    each point's light that reaches camera i through a medium) and its ``airlight`` A [3], each view shows
+    t·c + (1 − t)·A, and c is the least-squares fit over the views, shrunk towards their mean by ``shrink`` (per view)
+    where the medium hides the point (Σ t² small): c = (Σ t·(o − (1 − t)·A) + shrink·n·ō) / (Σ t² + shrink·n),
+    so a near view counts for more than a far one and nothing is divided by a vanishing t.
+
     points [P, 3] world; cameras: one per image; images [H, W, 3] in [0, 1] (any size: the camera's intrinsics are
-    scaled); depths [H, W] z-depth (scene units, non-finite where unknown: no test there) -> [P, 3] float32, mid
-    grey (`UNSEEN_COLOUR`) where no view sees the point."""
+    scaled); depths [H, W] z-depth (scene units, non-finite where unknown: no test there) -> [P, 3] float32 in
+    [0, 1], mid grey (`UNSEEN_COLOUR`) where no view sees the point."""
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    total, count = np.zeros((len(pts), 3)), np.zeros(len(pts))
+    medium = transmittance is not None
+    a = np.zeros(3) if airlight is None else np.asarray(airlight, dtype=np.float64).reshape(3)
+    total, fitted, weight = np.zeros((len(pts), 3)), np.zeros((len(pts), 3)), np.zeros((len(pts), 1))
+    count = np.zeros(len(pts))
     w2c = cameras.world_to_cameras().double().cpu().numpy()
     for i, image in enumerate(images):
         image = np.asarray(image, dtype=np.float32)
@@ -52,11 +65,20 @@ def colours_seen(
                          np.clip((col / sx).astype(np.int64), 0, surface.shape[1] - 1)]  # fmt: skip
             known = np.isfinite(at) & (at > 0)
             seen &= ~known | (z <= at * (1.0 + tolerance))
-        total[seen] += image[row[seen], col[seen], :3]
+        shown = image[row[seen], col[seen], :3].astype(np.float64)
+        total[seen] += shown
         count[seen] += 1
+        if medium:
+            t = np.clip(np.asarray(transmittance(i), dtype=np.float64).reshape(-1)[seen, None], 0.0, 1.0)
+            fitted[seen] += t * (shown - (1.0 - t) * a)
+            weight[seen] += t * t
     out = np.full((len(pts), 3), UNSEEN_COLOUR, np.float32)
     hit = count > 0
-    out[hit] = (total[hit] / count[hit, None]).astype(np.float32)
+    mean = total[hit] / count[hit, None]
+    if medium:
+        prior = shrink * count[hit, None]
+        mean = np.clip((fitted[hit] + prior * mean) / np.maximum(weight[hit] + prior, 1e-12), 0.0, 1.0)
+    out[hit] = mean.astype(np.float32)
     return out
 
 

@@ -84,6 +84,9 @@ class MeteGSConfig(TrainConfig):
     for far Gaussians (3dgs's 0.1 costs blind MeteGS 0.9 dB on the default run; where nothing blurs the photos,
     training takes 3dgs's), and 3dgs's world-size prune at half the extent (0.1 cost blind MeteGS 0.4-0.9 dB in
     rain on the Lund street, two seeds)."""
+    clear_start_colours: bool = True
+    """Start the points' colours from the clean references, or in blind mode from the photos with the weather's medium
+    (fog, rain veil) taken out along each point's distance; off: the photos' colours, weather and all."""
     depth_prune: bool = True
     """Depth-aware pruning: the opacity threshold falls with normalised camera depth."""
     depth_prune_options: DepthPruneConfig = field(default_factory=DepthPruneConfig)

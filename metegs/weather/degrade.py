@@ -92,8 +92,9 @@ def degrade_scene(
         family: ``physical`` or ``independent`` (see `iter_degraded_views`).
 
     Returns:
-        (scene copy, records): the copy's ``images`` are the degraded views (float32 [H, W, 3] in memory),
-        its ``clean_images`` the original images (``image_paths``/``clean_image_paths`` are None: the arrays
+        (scene copy, records): the copy's ``images`` are the degraded views (float32 [H, W, 3] in memory) and its
+        points' colours are read from them (`metegs.data.point_colours.colours_seen`); its ``clean_images`` are
+        the original images (``image_paths``/``clean_image_paths`` are None: the arrays
         are authoritative); one record per view for weather.json (view, name, seed, kinds, θ.to_dict(), the
         number of weather Gaussians (rain, snow) drawn, per model and in all, and their visible coverage, and each
         medium's summary, e.g. the fog's β per channel and airlight).
@@ -105,7 +106,14 @@ def degrade_scene(
         images.append(view.image)
         cleans.append(view.clean)
         records.append(view.record)
-    out = dataclasses.replace(scene, images=images, clean_images=cleans, image_paths=None, clean_image_paths=None)
+    colours = scene.point_colors
+    if scene.points is not None and len(scene.points):  # what the degraded photos show, not the clean ones
+        from metegs.data.point_colours import colours_seen
+
+        colours = colours_seen(scene.points, scene.cameras, images, depths if depths is not None else scene.depths)
+    out = dataclasses.replace(
+        scene, images=images, clean_images=cleans, image_paths=None, clean_image_paths=None, point_colors=colours
+    )
     return out, records
 
 

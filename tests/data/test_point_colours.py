@@ -39,6 +39,33 @@ def test_a_point_takes_the_mean_colour_of_the_views_that_see_it_in_front_of_thei
     np.testing.assert_allclose(colours_seen(points, two_cameras(), images)[1], 0.4, atol=1e-6)  # without depths
 
 
+def test_through_a_medium_the_colour_is_the_least_squares_fit_of_t_c_plus_airlight():
+    # two views see two points through a medium; each photo shows t·c + (1 − t)·A with the view's own t
+    clean = np.array([[0.1, 0.5, 0.9], [0.3, 0.2, 0.7]])
+    airlight = np.array([0.9, 0.85, 0.8])
+    points = np.array([[0.5, 0.0, 5.0], [0.5, 0.0, 3.0]])
+    t = np.array([[0.7, 0.2], [0.4, 0.9]])  # [view, point]
+    cams = two_cameras()
+    w2c = cams.world_to_cameras().numpy()
+    images = []
+    for i in range(2):
+        image = np.zeros((H, W, 3), np.float32)
+        for k, p in enumerate(points):
+            x, y, z = w2c[i, :3, :3] @ p + w2c[i, :3, 3]
+            u, v = int(20.0 * x / z + W / 2), int(20.0 * y / z + H / 2)
+            image[v, u] = t[i, k] * clean[k] + (1 - t[i, k]) * airlight
+        images.append(image)
+    exact = colours_seen(points, cams, images, transmittance=lambda i: t[i], airlight=airlight, shrink=0.0)
+    np.testing.assert_allclose(exact, clean, atol=1e-6)
+    hazed = colours_seen(points, cams, images)  # no medium: the photos' mean, airlight and all
+    assert np.abs(hazed - clean).max() > 0.2
+    # where the medium hides a point from every view, the fit stays at the photos' mean instead of dividing by t
+    hidden = colours_seen(points, cams, images, transmittance=lambda i: np.full(2, 1e-4), airlight=airlight)
+    np.testing.assert_allclose(hidden, hazed, atol=1e-3)
+    shrunk = colours_seen(points, cams, images, transmittance=lambda i: t[i], airlight=airlight)  # shrink 0.1
+    assert np.abs(shrunk - clean).max() < np.abs(hazed - clean).max() / 2
+
+
 def colmap_model(root: Path, text: bool) -> Path:
     """``root/images`` with three 32x24 photos (view i: value 40·(i+1) in every channel, plus 5 per column in red)
     and ``root/sparse/0``: 5 points coloured (200, 120, 40), the first 3 seen at (4.5 + 3k, 6.5) in every view."""
@@ -98,6 +125,7 @@ def test_a_degraded_colmap_copy_colours_its_points_from_the_degraded_photos(tmp_
         0.0, visibility_m=5.0, fog_kind="fog", camera=camera_spec(scene.cameras, capture_width_px=0, far_m=5.0)
     )
     foggy, _ = degrade_scene(scene, theta, kinds="fog", depths=[np.full((H, W), 4.0, np.float32)] * 3)
+    assert np.abs(foggy.point_colors - scene.point_colors).max() > 0.1  # in memory: the fog's colours
     with staged_output(tmp_path / "out") as tmp:
         writer = DatasetWriter(scene, tmp)
         for i in range(3):

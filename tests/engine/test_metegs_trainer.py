@@ -264,6 +264,32 @@ def test_clear_weather_builds_no_weather_and_blind_mode_skips_the_clean_branch(t
     trainer.train()
 
 
+def start_colours_and_their_errors(trainer) -> tuple[str, float, float]:
+    """(the start-colours decision, mean error of the points' start colours and of the photos' colours against the
+    colours the clean references show at the points)."""
+    from metegs.data.point_colours import colours_seen
+    from metegs.gaussians.sh import sh_to_rgb
+
+    ds, views = trainer.dataset, trainer.dataset.train_indices
+    points = trainer.model.params["means"].detach().cpu().numpy()
+    cams, depths = ds.cameras[views], [ds.depths[i].numpy() for i in views]
+    clean = colours_seen(points, cams, [ds.clean_images[i].numpy() for i in views], depths)
+    photos = colours_seen(points, cams, [ds.images[i].numpy() for i in views], depths)
+    start = sh_to_rgb(trainer.model.params["sh0"][:, 0].detach()).numpy()
+    return trainer.decisions["start colours"], float(abs(start - clean).mean()), float(abs(photos - clean).mean())
+
+
+@pytest.mark.parametrize("clean_supervision", [False, True])
+def test_the_points_start_from_the_scene_without_its_fog(tmp_path, clean_supervision):
+    fog = ConditionsConfig(precip_mm_h=0.0, visibility_m=250.0)
+    config = tiny_metegs(tmp_path, conditions=fog, degrade="fog", clean_supervision=clean_supervision, max_steps=1)
+    decision, start, photos = start_colours_and_their_errors(config.setup())
+    assert ("clean references" if clean_supervision else "fog-analytic medium taken out") in decision
+    assert start < (0.05 if clean_supervision else 0.7 * photos), (start, photos)
+    decision, start, photos = start_colours_and_their_errors(replace(config, clear_start_colours=False).setup())
+    assert "photos'" in decision and start == pytest.approx(photos, abs=0.01)  # the degraded copy's colours
+
+
 def test_extra_points_compensate_sfm_points_only(tmp_path):
     from_points = tiny_metegs(tmp_path / "a", max_steps=2).setup()
     assert not from_points.random_init and from_points.extra_points is not None
