@@ -102,12 +102,12 @@ class MeteGSTrainer(Trainer):
     def _clear_start_colours(self) -> None:
         """Recolour the points this run started from (not a checkpoint's, not random ones) by the scene without its
         weather (`MeteGSConfig.clear_start_colours`): SfM colours are the photos', fog and rain veil included, and a
-        hazed start is slow to leave (3000 steps on Lund's 200 m fog: 12.28 dB from the photos' colours, 13.02 from
+        hazed start is slow to leave (3000 steps on Lund's 200 m fog: 12.28 dB from the photos' colours, 13.05 from
         these)."""
         if not self._coloured_from_points:
             return
         if not self.config.clear_start_colours:
-            self.decide("start colours", "the photos' (--clear-start-colours False)")
+            self.decide("start colours", "the photos' (--no-clear-start-colours)")
             return
         from metegs.data.point_colours import colours_seen
 

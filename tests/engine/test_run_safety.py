@@ -69,7 +69,9 @@ def test_two_processes_started_together_keep_both_runs(tmp_path):
 def test_ctrl_c_saves_a_checkpoint_and_names_it(tmp_path):
     cmd = [*TRAIN, "--max-steps", "100000", "--checkpoint-every", "0", "--output-dir", str(tmp_path),
            "--experiment-name", "run"]  # fmt: skip
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    # faulthandler: a child that does not stop is sent SIGABRT and writes every thread's stack to stderr
+    env = {**os.environ, "PYTHONFAULTHANDLER": "1"}
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     try:
         first = tmp_path / "synthetic/3dgs/run/checkpoints/step-000000.ckpt"
         deadline = time.monotonic() + 120
@@ -81,9 +83,13 @@ def test_ctrl_c_saves_a_checkpoint_and_names_it(tmp_path):
         try:
             _, err = proc.communicate(timeout=120)
         except subprocess.TimeoutExpired:  # say where it stood: still training, or stopped and stuck on its way out
-            proc.kill()
-            out, err = proc.communicate()
-            pytest.fail(f"no exit within 120 s of Ctrl-C; stdout: {out[-1500:]}\nstderr: {err[-1500:]}")
+            proc.send_signal(signal.SIGABRT)
+            try:
+                out, err = proc.communicate(timeout=30)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                out, err = proc.communicate()
+            pytest.fail(f"no exit within 120 s of Ctrl-C; stdout: {out[-1500:]}\nstderr (stacks): {err[-6000:]}")
     finally:
         if proc.poll() is None:  # a failed wait must not leave a 100000-step run training beside the suite
             proc.kill()
