@@ -115,6 +115,10 @@ def test_fog_record_prior_is_on_where_the_views_see_the_scene_from_one_distance(
     assert fog.height_rate.requires_grad
     learned = {id(p) for o in around.method_optimizers.values() for g in o.param_groups for p in g["params"]}
     assert id(fog.height_rate) in learned
+    with torch.no_grad():
+        fog.height_rate.fill_(-1.0)  # fog denser upwards: each step puts it back to uniform at least
+    around.train()
+    assert float(fog.height_rate.detach()) >= 0.0
     facing = tiny_metegs(tmp_path / "facing", conditions=conditions, max_steps=1).setup(
         scene=forward_facing(around.scene)
     )
