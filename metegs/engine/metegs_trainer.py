@@ -295,6 +295,12 @@ class MeteGSTrainer(Trainer):
         elif dark:
             fog.use_record_prior = False
             why = f"the dark channel prior measures β; the record's {beta} is where it starts"
+        elif measurable and (rain := self._rain_through_dense_fog()) is not None:
+            fog.use_record_prior = True
+            why = (
+                f"{seen}, but {rain} through dense fog: the light the rain adds differs from view to view and drowns "
+                f"the photos' measure of β, so β stays near the record's {beta}"
+            )
         elif measurable:
             fog.use_record_prior = False
             why = f"{seen}: the photos measure β"
@@ -320,6 +326,15 @@ class MeteGSTrainer(Trainer):
         elif fog.learn_patches():
             g = fog.patch_log_scale.shape
             self.decide(f"{name} patches", f"on: per view, a {g[2]}x{g[1]} grid scales the optical depth")
+
+    def _rain_through_dense_fog(self) -> str | None:
+        """Blind, rain heavier than light through a dense medium (`DENSE_OPTICAL_DEPTH` at the scene's typical depth):
+        the rain in words, else None."""
+        rain = self.weather_theta(self.scene).rain
+        dense = self.medium_optical_depth >= DENSE_OPTICAL_DEPTH
+        if self.use_clean or rain.intensity_class in LIGHT_OR_NONE or not dense:
+            return None
+        return rain_phrase(rain)
 
     def _decide_dark_channel(self, fog: FogAnalytic, measurable: bool, seen: str) -> bool:
         """Whether the dark-channel prior holds ``fog`` (then it joins `dehazing`): blind training only, and with

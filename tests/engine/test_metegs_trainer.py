@@ -128,6 +128,22 @@ def test_fog_record_prior_is_on_where_the_views_see_the_scene_from_one_distance(
     assert facing.decisions["fog-analytic layers"].startswith("off:") and not fog.layered
 
 
+def test_blind_the_record_holds_beta_where_heavy_rain_falls_through_dense_fog(tmp_path):
+    """The built-in scene's views measure β (the test above), but heavy rain through dense fog adds light that
+    differs per view: blind, β stays near the record's; clean references measure it, and it stays free."""
+    conditions = ConditionsConfig(precip_mm_h=20.0, visibility_m=150.0, metres_per_unit=100.0)
+    blind = tiny_metegs(tmp_path / "blind", conditions=conditions, clean_supervision=False, max_steps=1).setup()
+    assert blind.decisions["fog-analytic prior"].startswith("on (weight 0.1): the views see a scene point from")
+    assert "heavy rain (20 mm/h) through dense fog" in blind.decisions["fog-analytic prior"]
+    fog = next(m for m in blind.weather_models if m.name == "fog-analytic")
+    assert fog.use_record_prior and not fog.layered
+    refs = tiny_metegs(tmp_path / "refs", conditions=conditions, max_steps=1).setup()
+    assert refs.decisions["fog-analytic prior"].startswith("off: the views see a scene point from")
+    light = replace(conditions, precip_mm_h=1.0)
+    blind = tiny_metegs(tmp_path / "light", conditions=light, clean_supervision=False, max_steps=1).setup()
+    assert blind.decisions["fog-analytic prior"].startswith("off:")  # light rain: the photos measure β
+
+
 def test_the_dark_channel_prior_holds_the_fog_where_blind_photos_cannot_measure_it(tmp_path):
     """Blind on a forward-facing rig the dark-channel prior holds the medium (the record's β is where it starts, not a
     prior) and moves β; where the views measure β (the built-in scene's surround), with clean references, or off, the
