@@ -276,7 +276,9 @@ class MeteGSTrainer(Trainer):
         """What sets ``fog``'s β where the photometric fit alone cannot: ``auto`` asks if the views see the scene's
         (initial) points over distances far enough apart for the photos to measure β
         (`MEASURABLE_DISTANCE_SPREAD`); where they are not, blind training holds it by the dark-channel prior
-        (`dark_channel`), training with clean references (or with that prior off) near the met record's."""
+        (`dark_channel`), training with clean references (or with that prior off) near the met record's. Blind
+        under rain heavier than light through dense fog the record holds it wherever the views are
+        (`_rain_through_dense_fog`)."""
         from metegs.weather.medium import MEASURABLE_DISTANCE_SPREAD, distance_spread
 
         if not fog.log_beta.requires_grad:

@@ -8,7 +8,7 @@ channel comes from θ_fog (visibility by the 5 % rule, minus the rain's share, p
 distance (forward-facing captures), a hazy scene under less fog fits the photos as well as the true fog over the
 clean scene, and a free β drifts down while the scene takes the haze in: there (``record_prior`` auto, decided by
 the trainer) a prior holds ln β near θ's; where the distances differ across views the photos measure β, and it
-stays free.
+stays free, unless (blind) heavy rain falls through dense fog: the light it adds drowns that measure.
 
 Where the photos measure the medium (the prior off), the fog also learns how it thins with height above the
 ground, starting uniform: β(x) = β·exp(−k·h(x)), h the height in metres over the cameras' mean and k learnable, so
@@ -80,7 +80,8 @@ class FogAnalyticConfig(WeatherModelConfig):
     """Expose β and A as trainable parameters."""
     record_prior: Literal["auto", "on", "off"] = "auto"
     """Hold β near the met record's while training: auto = on where the photos cannot measure β (every view sees
-    the scene from about the same distance, as in forward-facing captures), off where they can."""
+    the scene from about the same distance, as in forward-facing captures, or, blind, heavy rain falls through dense
+    fog), off where they can."""
     record_prior_weight: Annotated[float, NON_NEGATIVE] = 0.1
     """Weight of that prior, record_prior_weight · mean((ln β − ln β_θ)²)."""
     layered: bool = True

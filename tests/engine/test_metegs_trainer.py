@@ -254,7 +254,8 @@ def test_a_checkpoint_whose_weather_learned_other_parameters_resumes_with_fresh_
     fog = next(m for m in again.weather_models if m.name == "fog-analytic")
     assert fog.height_rate.requires_grad and torch.equal(fog.log_beta, fog_old.log_beta)
     again.train()
-    assert again.step == 3 and float(fog.height_rate.detach()) != 0.0
+    moments = again.method_optimizers["weather"].state[fog.height_rate]  # it learns (k ≥ 0 may clamp the step)
+    assert again.step == 3 and float(moments["exp_avg"].abs()) > 0.0
 
 
 def test_a_checkpoint_of_another_gtn_width_is_refused_with_the_flag_to_give(trained, tmp_path):
