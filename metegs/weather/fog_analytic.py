@@ -13,9 +13,9 @@ stays free, unless (blind) heavy rain falls through dense fog: the light it adds
 Where the photos measure the medium (the prior off), the fog also learns how it thins with height above the
 ground, starting uniform: β(x) = β·exp(−k·h(x)), h the height in metres over the cameras' mean and k learnable, so
 the optical depth of a ray from height h_c, rising u per metre, to distance d is
-β·d·exp(−k·h_c)·(1 − e^{−k·u·d})/(k·u·d), exact; k ≥ 0 (`constrain`): fog thins upwards or stays uniform. Without it, where the true fog is thinner than a uniform one the
-scene can only darken itself by moving Gaussians in front of the fog, next to the camera: floaters in the clean
-render.
+β·d·exp(−k·h_c)·(1 − e^{−k·u·d})/(k·u·d), exact. Without the profile, where the true fog is thinner than a uniform
+one the scene can only darken itself by moving Gaussians in front of the fog, next to the camera: floaters in the
+clean render. k stays ≥ 0 (`constrain`): fog thins upwards or stays uniform.
 """
 
 from __future__ import annotations
