@@ -610,11 +610,7 @@ class MeteGSTrainer(Trainer):
         return [*super().step_optimizers(), *self.method_optimizers.values()]
 
     def densify_step(self) -> dict[str, int]:
-        """The weather's parameters back in their range (`WeatherModel.constrain`), the densification schedule, then
-        the extra points once (`extra_points`)."""
-        with torch.no_grad():
-            for model in self.weather_models:
-                model.constrain()
+        """The densification schedule, then the extra points once (`extra_points`)."""
         changes = super().densify_step()
         if self.extra_points is not None:
             changes.update(self.extra_points.step(self.model, self.optimizers, self.step))

@@ -106,9 +106,6 @@ class WeatherModel(torch.nn.Module):
         to the loss), or None (the default: no prior)."""
         return None
 
-    def constrain(self) -> None:
-        """Put learned parameters back inside their physical range after an optimiser step (nothing by default)."""
-
     def summary(self) -> dict | None:
         """The model's learned values next to θ's, for metrics.json (JSON-ready), or None."""
         return None

@@ -15,7 +15,7 @@ ground, starting uniform: β(x) = β·exp(−k·h(x)), h the height in metres ov
 the optical depth of a ray from height h_c, rising u per metre, to distance d is
 β·d·exp(−k·h_c)·(1 − e^{−k·u·d})/(k·u·d), exact. Without the profile, where the true fog is thinner than a uniform
 one the scene can only darken itself by moving Gaussians in front of the fog, next to the camera: floaters in the
-clean render. k stays ≥ 0 (`constrain`): fog thins upwards or stays uniform.
+clean render.
 """
 
 from __future__ import annotations
@@ -256,12 +256,6 @@ class FogAnalytic(WeatherModel):
         k = self.height_rate.to(distance_m) / 100.0
         return height_profile(k, camera_height, rise, distance_m, self.scene.metres_per_unit)
 
-    def constrain(self) -> None:
-        """Keep k ≥ 0: fog that thins upwards or is uniform. An exponential that grows with height has no top, and
-        fog denser aloft is a cloud base the exponential cannot draw; a blind fit reaches for it when the scene takes
-        the haze in (Lund, independent rain + fog: scale height −146 m)."""
-        self.height_rate.clamp_(min=0.0)
-
     def prior(self, view: int) -> torch.Tensor | None:
         """record_prior_weight · mean((ln β − ln β_θ)²) when the record prior is on, plus patches_weight · mean of the
         view's squared patch log-scales when they learn; None when neither."""
@@ -284,7 +278,7 @@ class FogAnalytic(WeatherModel):
 
     def summary(self) -> dict:
         """Learned β (1/m, RGB at the cameras' mean height) and airlight next to θ's β; with layers, β's scale
-        height (m; None while uniform)."""
+        height (m; negative: denser upwards)."""
         out = {
             "beta_per_m": [round(float(b), 6) for b in self.beta_rgb.detach()],
             "record_beta_per_m": [round(float(b), 6) for b in self.record_log_beta.exp()],

@@ -115,10 +115,6 @@ def test_fog_record_prior_is_on_where_the_views_see_the_scene_from_one_distance(
     assert fog.height_rate.requires_grad
     learned = {id(p) for o in around.method_optimizers.values() for g in o.param_groups for p in g["params"]}
     assert id(fog.height_rate) in learned
-    with torch.no_grad():
-        fog.height_rate.fill_(-1.0)  # fog denser upwards: each step puts it back to uniform at least
-    around.train()
-    assert float(fog.height_rate.detach()) >= 0.0
     facing = tiny_metegs(tmp_path / "facing", conditions=conditions, max_steps=1).setup(
         scene=forward_facing(around.scene)
     )
@@ -254,8 +250,7 @@ def test_a_checkpoint_whose_weather_learned_other_parameters_resumes_with_fresh_
     fog = next(m for m in again.weather_models if m.name == "fog-analytic")
     assert fog.height_rate.requires_grad and torch.equal(fog.log_beta, fog_old.log_beta)
     again.train()
-    moments = again.method_optimizers["weather"].state[fog.height_rate]  # it learns (k ≥ 0 may clamp the step)
-    assert again.step == 3 and float(moments["exp_avg"].abs()) > 0.0
+    assert again.step == 3 and float(fog.height_rate.detach()) != 0.0
 
 
 def test_a_checkpoint_of_another_gtn_width_is_refused_with_the_flag_to_give(trained, tmp_path):
