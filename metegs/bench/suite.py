@@ -114,7 +114,8 @@ LPIPS may download its backbone changes no training)."""
 
 
 def config_changes(run_dir: Path, config) -> list[str]:
-    """Top-level config fields whose value in ``run_dir/config.yml`` differs from ``config`` (empty: same)."""
+    """Config fields whose value in ``run_dir/config.yml`` differs from ``config``, as dotted paths to the values that
+    differ (``dataset.auto_max_side``; empty: same). Top-level fields in `VOLATILE_FIELDS` are left out."""
     from metegs.config import load_yaml
     from metegs.data.config import auto_max_side
 
@@ -127,7 +128,20 @@ def config_changes(run_dir: Path, config) -> list[str]:
         config = replace(config, dataset=replace(config.dataset, auto_max_side=size))
     now = json.loads(json.dumps(to_dict(config), default=str))
     saved = json.loads(json.dumps(saved, default=str))
-    return sorted(k for k, v in now.items() if k not in VOLATILE_FIELDS and k in saved and saved[k] != v)
+    return sorted(
+        path
+        for k, v in now.items()
+        if k not in VOLATILE_FIELDS and k in saved
+        for path in _differing_paths(saved[k], v, k)
+    )
+
+
+def _differing_paths(saved: Any, now: Any, path: str) -> list[str]:
+    """Dotted paths under ``path`` where the plain values ``saved`` and ``now`` differ (nested dicts compared key by
+    key; a key only one side has is left out, as a field added since the run was made)."""
+    if isinstance(saved, dict) and isinstance(now, dict):
+        return [p for k in now if k in saved for p in _differing_paths(saved[k], now[k], f"{path}.{k}")]
+    return [] if saved == now else [path]
 
 
 def _finite(v: Any) -> Any:
@@ -300,7 +314,7 @@ class SuiteRunner:
             if changed:
                 record["config_changed"] = changed
                 self.console.print(
-                    f"[yellow]{label}: reused, but the suite now asks for other {', '.join(changed)} than the run "
+                    f"[yellow]{label}: reused, but the suite now sets {', '.join(changed)} otherwise than the run "
                     f"was made with; delete {run_dir} to train it again[/]",
                     highlight=False,
                 )

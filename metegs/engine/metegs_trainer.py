@@ -291,6 +291,7 @@ class MeteGSTrainer(Trainer):
         )
         dark = self._decide_dark_channel(fog, measurable, seen)
         mode, beta = fog.config.record_prior, f"{float(fog.record_log_beta.exp().mean()):.2e}/m"
+        flat = "off: where the photos cannot measure β they cannot tell how it varies"
         if mode != "auto":
             fog.use_record_prior = mode == "on"
             why = f"--{name}.record-prior {mode}" + (f" (β near {beta})" if fog.use_record_prior else "")
@@ -303,6 +304,7 @@ class MeteGSTrainer(Trainer):
                 f"{seen}, but {rain} through dense fog: the light the rain adds differs from view to view and drowns "
                 f"the photos' measure of β, so β stays near the record's {beta}"
             )
+            flat = "off: the rain that drowns the photos' measure of β drowns how it changes with height too"
         elif measurable:
             fog.use_record_prior = False
             why = f"{seen}: the photos measure β"
@@ -312,7 +314,7 @@ class MeteGSTrainer(Trainer):
         weight = f" (weight {fog.config.record_prior_weight:g})" if fog.use_record_prior else ""
         self.decide(f"{name} prior", f"{'on' if fog.use_record_prior else 'off'}{weight}: {why}")
         if fog.use_record_prior:
-            self.decide(f"{name} layers", "off: where the photos cannot measure β they cannot tell how it varies")
+            self.decide(f"{name} layers", flat)
         elif fog.learn_layers():
             self.decide(f"{name} layers", "on: β learns how it changes with height")
         else:

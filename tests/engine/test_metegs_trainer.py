@@ -133,6 +133,7 @@ def test_blind_the_record_holds_beta_where_heavy_rain_falls_through_dense_fog(tm
     assert "heavy rain (20 mm/h) through dense fog" in blind.decisions["fog-analytic prior"]
     fog = next(m for m in blind.weather_models if m.name == "fog-analytic")
     assert fog.use_record_prior and not fog.layered
+    assert blind.decisions["fog-analytic layers"].startswith("off: the rain that drowns the photos' measure of β")
     refs = tiny_metegs(tmp_path / "refs", conditions=conditions, max_steps=1).setup()
     assert refs.decisions["fog-analytic prior"].startswith("off: the views see a scene point from")
     light = replace(conditions, precip_mm_h=1.0)

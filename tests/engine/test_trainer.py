@@ -221,7 +221,9 @@ def test_the_run_records_the_image_size_its_device_chose(tmp_path):
     assert trainer.decisions["image size"].startswith("64x48 px: the longer side at most 640 px on cpu")
     trainer.train()
     assert config_changes(trainer.run_dir, config) == []  # None in the suite's config: the device's choice
-    assert config_changes(trainer.run_dir, replace(config, dataset=replace(ds, auto_max_side=320))) == ["dataset"]
+    assert config_changes(trainer.run_dir, replace(config, dataset=replace(ds, auto_max_side=320))) == [
+        "dataset.auto_max_side"
+    ]
 
 
 def test_a_method_extends_the_step_through_its_hooks(tmp_path):
