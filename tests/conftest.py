@@ -27,16 +27,24 @@ def _restore_flush_denormal():
     torch.set_flush_denormal(False)
 
 
-@pytest.fixture(autouse=True)
-def _no_downloads(monkeypatch):
+@pytest.fixture(autouse=True, scope="session")
+def _no_downloads():
     """Tests never download: weights that product code would fetch on first use (the torch hub cache) fail as they
-    do offline, with a reason; tests that need weights pass local files explicitly."""
+    do offline, with a reason; tests that need weights pass local files explicitly. Session-wide, so that module
+    fixtures that train are covered too."""
 
     def offline(url, *args, **kwargs):
         raise OSError(f"tests never download ({url})")
 
-    monkeypatch.setattr(torch.hub, "load_state_dict_from_url", offline)
-    monkeypatch.setattr(torch.hub, "download_url_to_file", offline)
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(torch.hub, "load_state_dict_from_url", offline)
+        patch.setattr(torch.hub, "download_url_to_file", offline)
+        yield
+
+
+@pytest.fixture(autouse=True)
+def _fresh_failed_downloads(monkeypatch):
+    """Each test starts without the memory of earlier tests' failed downloads."""
     from metegs.eval import backbones
 
     monkeypatch.setattr(backbones, "FAILED_DOWNLOADS", {})

@@ -38,7 +38,7 @@ from metegs.files import atomic_write_text, write_result
 from metegs.gaussians.dropout import drop_gaussians, drop_rate_at
 from metegs.gaussians.model import GaussianModel, GaussianSet
 from metegs.meteo import Theta
-from metegs.models.exposure import ViewExposure
+from metegs.models.exposure import ViewExposure, nearest_training_rows
 from metegs.render import RenderOutput, RenderSettings, make_rasterizer
 from metegs.render.cpu_backend import thread_split, thread_split_counts
 from metegs.render.select import resolve_backend
@@ -394,7 +394,9 @@ class Trainer:
             self.decide("view_exposure", f"{'off' if rendered else 'on'} ({why}; --view-exposure on|off)")
         if choice == "off" or (choice == "auto" and rendered):
             return None, None
-        exposure = ViewExposure(self.dataset.train_indices, len(self.dataset.cameras), self.device)
+        train, cameras = self.dataset.train_indices, self.dataset.cameras
+        nearest = nearest_training_rows(cameras, train)
+        exposure = ViewExposure(train, len(cameras), self.device, nearest=nearest)
         return exposure, adam(exposure.parameters(), lr=self.config.optim.exposure_lr, eps=self.config.optim.eps)
 
     # --- one step ----------------------------------------------------------------------------------
@@ -596,7 +598,8 @@ class Trainer:
     # --- evaluation and outputs --------------------------------------------------------------------
     @torch.no_grad()
     def render_views(self, indices: list[int]) -> list[torch.Tensor]:
-        return [self.render(i).rgb.clamp(0, 1) for i in indices]
+        """Renders [H, W, 3] of dataset views ``indices`` as their photos would show them (`ViewExposure`)."""
+        return [self.as_photographed(self.render(i).rgb, i).clamp(0, 1) for i in indices]
 
     def record_eval(self, quick: bool) -> dict:
         """Evaluate the test views (PSNR/SSIM; LPIPS too unless ``quick``) and append to the history."""
@@ -627,6 +630,8 @@ class Trainer:
         scene.ply. Returns the metrics."""
         from metegs.gaussians.ply import save_ply
 
+        if self.exposure is not None:
+            self._decide_test_tone()
         m = self.record_eval(quick=False)
         idx = self.dataset.test_indices or self.dataset.train_indices
         split = "test" if self.dataset.test_indices else "train"
@@ -659,6 +664,17 @@ class Trainer:
             self.save_renders(idx, split)
         save_ply(self.model, self.run_dir / "scene.ply", **self.ply_layout())
         return metrics
+
+    def _decide_test_tone(self) -> None:
+        """Record which tone the test views are scored in (`ViewExposure.tones_from_nearest`)."""
+        near, average = self.exposure.tone_errors()
+        chosen = "their nearest training photo's" if self.exposure.tones_from_nearest() else "the photos' average"
+        self.decide(
+            "test_tone",
+            f"{chosen} (each training photo's tone from its nearest other photo's: {near:.4f} RMS; from the others' "
+            f"average: {average:.4f})",
+        )
+        self.save_decisions()
 
     def extra_metrics(self) -> dict:
         """Method-specific entries of metrics.json (none for plain 3DGS)."""

@@ -1,12 +1,69 @@
-"""Per-view exposure: the affines' gauge, what they do to a render, and a run on photos of varying exposure."""
+"""Per-view exposure: the affines' gauge, what they do to a render, which tone test views take, and runs on photos
+of varying exposure."""
 
 from dataclasses import replace
 
 import pytest
 import torch
 
+from metegs.cameras import Cameras
 from metegs.engine.optim import OptimConfig
-from metegs.models.exposure import ViewExposure
+from metegs.models.exposure import ViewExposure, nearest_training_rows
+
+
+def cameras_along_a_street(n: int) -> Cameras:
+    """``n`` cameras 1 m apart along x, all looking along +z (OpenCV axes)."""
+    c2w = torch.eye(4).repeat(n, 1, 1)
+    c2w[:, 0, 3] = torch.arange(n, dtype=torch.float32)
+    return Cameras.create(c2w, 50.0, 50.0, 32.0, 24.0, 64, 48)
+
+
+def test_each_view_finds_its_nearest_other_training_view():
+    cameras = cameras_along_a_street(7)
+    rows = nearest_training_rows(cameras, [0, 2, 3, 5])
+    # view 1 sits between training views 0 and 2 (rows 0, 1), view 4 between 3 and 5 (rows 2, 3); a training
+    # view's neighbour is never itself
+    assert rows[0] == 1 and rows[2] == 2 and rows[3] == 1 and rows[5] == 2 and rows[6] == 3
+    assert rows[1] in (0, 1) and rows[4] in (2, 3)
+    assert nearest_training_rows(cameras, [3]) == [0, 0, 0, -1, 0, 0, 0]  # alone: nobody to ask for view 3
+
+
+def test_the_heading_decides_between_cameras_in_one_place():
+    c2w = torch.eye(4).repeat(3, 1, 1)
+    c2w[1, :3, :3] = c2w[2, :3, :3] = torch.diag(torch.tensor([-1.0, 1.0, -1.0]))  # views 1 and 2 look back
+    c2w[2, 0, 3] = 0.1
+    cameras = Cameras.create(c2w, 50.0, 50.0, 32.0, 24.0, 64, 48)
+    assert nearest_training_rows(cameras, [0, 1])[2] == 1  # view 2 stands nearer view 0 but looks as view 1 does
+
+
+def street_exposure(tones: torch.Tensor) -> ViewExposure:
+    """A ViewExposure over 12 street cameras, training views 0, 2, ..., 10 with gains ``tones`` [6, 3]."""
+    cameras = cameras_along_a_street(12)
+    train = list(range(0, 12, 2))
+    exposure = ViewExposure(train, 12, nearest=nearest_training_rows(cameras, train))
+    with torch.no_grad():
+        exposure.offsets[:, 0] = tones - 1.0
+    return exposure
+
+
+def test_test_views_take_the_nearest_photos_tone_where_tone_follows_the_street():
+    ramp = torch.linspace(0.6, 1.4, 6)[:, None].expand(6, 3)  # automatic exposure brightening down the street
+    exposure = street_exposure(ramp)
+    near, average = exposure.tone_errors()
+    assert near < average and exposure.tones_from_nearest()
+    gains, offsets = exposure.gains_and_offsets()
+    rgb = torch.rand(4, 6, 3)
+    assert torch.allclose(exposure(rgb, 3), rgb * gains[1] + offsets[1])  # view 3: training view 2's tone (row 1)
+    assert torch.allclose(exposure(rgb, 11), rgb * gains[5] + offsets[5])  # past the end: the last photo's
+
+
+def test_test_views_keep_the_average_tone_where_tone_jumps_from_shot_to_shot():
+    jumps = torch.tensor([0.6, 1.4, 0.6, 1.4, 0.6, 1.4])[:, None].expand(6, 3)  # neighbours disagree most
+    exposure = street_exposure(jumps)
+    near, average = exposure.tone_errors()
+    assert near > average and not exposure.tones_from_nearest()
+    rgb = torch.rand(4, 6, 3)
+    assert exposure(rgb, 3) is rgb
 
 
 def test_gains_average_to_one_offsets_to_zero_and_map_colours_as_written():
@@ -33,13 +90,9 @@ def test_a_fresh_exposure_is_the_identity_and_gradients_reach_its_offsets():
 def exposure_runs(tmp_path_factory):
     """3dgs with and without per-view exposure on the tiny synthetic scene whose training photos were each
     brightened or darkened (gains 0.6-1.4 per channel); test photos as they were."""
-    from tests.engine.test_trainer import tiny_config
-
     results = {}
     for name, choice in (("with", "on"), ("without", "auto")):  # auto: off on the rendered built-in scene
-        cfg = tiny_config(tmp_path_factory.mktemp(name), save_renders=False)
-        optim = OptimConfig(exposure_lr=3e-2)  # 150 steps: faster than a real run's 1e-3
-        trainer = replace(cfg, max_steps=150, eval_every=0.0, view_exposure=choice, optim=optim).setup()
+        trainer = exposure_trainer(tmp_path_factory.mktemp(name), choice)
         gen = torch.Generator().manual_seed(1)
         gains = {}
         for i in trainer.dataset.train_indices:
@@ -48,6 +101,45 @@ def exposure_runs(tmp_path_factory):
         metrics = trainer.train()
         results[name] = (trainer, metrics, gains)
     return results
+
+
+def exposure_trainer(folder, choice: str):
+    """A 150-step run of the tiny synthetic scene with `view_exposure` ``choice``."""
+    from tests.engine.test_trainer import tiny_config
+
+    cfg = tiny_config(folder, save_renders=False)
+    optim = OptimConfig(exposure_lr=3e-2)  # 150 steps: faster than a real run's 1e-3
+    return replace(cfg, max_steps=150, eval_every=0.0, view_exposure=choice, optim=optim).setup()
+
+
+@pytest.fixture(scope="module")
+def orbit_run(tmp_path_factory):
+    """3dgs with per-view exposure on the tiny scene photographed as a camera on automatic exposure would round
+    it: each photo, test photos included, brightened or darkened by how far round the orbit it stands."""
+    trainer = exposure_trainer(tmp_path_factory.mktemp("orbit"), "on")
+    centers = trainer.dataset.cameras.centers
+    offset = centers - centers.mean(dim=0)
+    azimuth = torch.atan2(offset[:, 1], offset[:, 0])
+    phases = torch.tensor([0.0, 0.5, 1.0])
+    ds = trainer.dataset
+    for i in range(len(ds.images)):
+        gain = 1.0 + 0.35 * torch.sin(azimuth[i] + phases)
+        ds.images[i] = (ds.images[i] * gain).clamp(0, 1)
+        if ds.clean_images is not None:  # the built-in scene's test views are scored against its clean renders
+            ds.clean_images[i] = (ds.clean_images[i] * gain).clamp(0, 1)
+    return trainer, trainer.train()
+
+
+def test_test_views_scored_in_their_nearest_photos_tone_where_tone_follows_the_orbit(orbit_run):
+    trainer, metrics = orbit_run
+    assert trainer.decisions["test_tone"].startswith("their nearest training photo's"), trainer.decisions
+    trainer.exposure.nearest = None  # the same Gaussians, test views in the photos' average tone
+    average = trainer.record_eval(quick=True)["psnr"]
+    assert metrics["psnr"] > average + 0.5, (metrics["psnr"], average)
+
+
+def test_test_views_keep_the_average_tone_where_each_photo_was_exposed_at_random(exposure_runs):
+    assert exposure_runs["with"][0].decisions["test_tone"].startswith("the photos' average")
 
 
 def test_per_view_exposure_recovers_the_scene_from_photos_of_varying_exposure(exposure_runs):
