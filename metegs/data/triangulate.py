@@ -8,7 +8,8 @@ geometric verification (sequential matching beyond 200 views; the `metegs-proces
 `metegs.data.sfm`), then
 ``pycolmap.triangulate_points`` with the cameras held fixed. Test views are never used. The points are
 cached in ``<scene>/.metegs_points/points-<key>.npz``; the key covers the photos (path, size, mtime),
-the cameras and the pycolmap version, so a changed photo or pose triangulates again.
+the cameras and the pycolmap version, so a changed photo or pose triangulates again. A triangulation that finds
+too few points is cached as well, so that a second run on the same photos falls back to random points at once.
 """
 
 from __future__ import annotations
@@ -162,23 +163,26 @@ def triangulate_known_poses(
 
     Reads the cached result from ``cache_dir`` when the photos and cameras are unchanged, else runs the
     pipeline of the module docstring and caches it there (``cache_dir`` None: no cache). Raises
-    ``RuntimeError`` when fewer than `MIN_POINTS` points could be triangulated.
+    ``RuntimeError`` when fewer than `MIN_POINTS` points could be triangulated (a failure is cached too).
     """
     opts = opts or SfmOptions(max_features=4096)  # features at up to 1600 px, as metegs-process-images
     if len(image_paths) != len(cameras):
         raise ValueError(f"{len(image_paths)} photos but {len(cameras)} cameras")
     pycolmap = _pycolmap()
     cache = None
+    found = None
     if cache_dir is not None:
         cache = Path(cache_dir) / f"points-{_cache_key(image_paths, cameras, opts, pycolmap.__version__)}.npz"
-        if cache.is_file() and (found := _load(cache)) is not None:
-            return found
-    result = _triangulate(image_paths, cameras, opts)
-    if len(result.points) < MIN_POINTS:
+        if cache.is_file():
+            found = _load(cache)
+    if found is None:
+        found = _triangulate(image_paths, cameras, opts)
+        if cache is not None:  # a failure too: the same photos and poses would fail the same way, minutes later
+            found.cache = _save(cache, found)
+    if len(found.points) < MIN_POINTS:
+        where = f"; remembered in {found.cache} (delete it to try again)" if found.cache is not None else ""
         raise RuntimeError(
-            f"only {len(result.points)} points could be triangulated from {result.num_views} views "
-            f"(need {MIN_POINTS}): the photos have too little texture or overlap"
+            f"only {len(found.points)} points could be triangulated from {found.num_views} views "
+            f"(need {MIN_POINTS}): the photos have too little texture or overlap{where}"
         )
-    if cache is not None:
-        result.cache = _save(cache, result)
-    return result
+    return found

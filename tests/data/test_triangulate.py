@@ -111,6 +111,28 @@ def test_featureless_photos_are_a_clear_failure(photographed, tmp_path):
         triangulate_known_poses(paths, scene.cameras[list(range(4))], None)
 
 
+def test_a_failed_triangulation_is_remembered_until_the_photos_change(photographed, tmp_path, monkeypatch):
+    scene, paths = photographed
+    cams = scene.cameras[list(range(VIEWS))]
+    few = np.zeros((3, 3), np.float32)
+    calls = []
+
+    def fake(image_paths, cameras, opts):
+        calls.append(len(image_paths))
+        return tri.TriangulatedPoints(few, few + 0.5, len(image_paths), 0.5)
+
+    monkeypatch.setattr(tri, "_triangulate", fake)
+    for _ in range(2):
+        with pytest.raises(RuntimeError, match=r"only 3 points .* remembered in .*points-.*\.npz \(delete it"):
+            triangulate_known_poses(paths, cams, tmp_path)
+    assert calls == [VIEWS]  # the second run read the failure from the cache
+    stat = paths[0].stat()
+    os.utime(paths[0], ns=(stat.st_atime_ns, stat.st_mtime_ns + 10**9))
+    with pytest.raises(RuntimeError, match="only 3 points"):
+        triangulate_known_poses(paths, cams, tmp_path)
+    assert calls == [VIEWS, VIEWS]
+
+
 def subset(scene, paths, source):
     """The photographed views as a scene with photo files and poses but no points (like an LLFF capture)."""
     views = list(range(len(paths)))
