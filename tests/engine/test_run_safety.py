@@ -71,7 +71,16 @@ def test_ctrl_c_saves_a_checkpoint_and_names_it(tmp_path):
            "--experiment-name", "run"]  # fmt: skip
     # faulthandler: a child that does not stop is sent SIGABRT and writes every thread's stack to stderr
     env = {**os.environ, "PYTHONFAULTHANDLER": "1"}
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    # a suite started in the background by a shell without job control inherits SIGINT ignored, and Python then
+    # leaves Ctrl-C ignored in the child too: the child gets the default disposition, as a terminal's process has
+    proc = subprocess.Popen(
+        cmd,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
     try:
         first = tmp_path / "synthetic/3dgs/run/checkpoints/step-000000.ckpt"
         deadline = time.monotonic() + 120
