@@ -29,6 +29,7 @@ def nearest_training_rows(cameras: Cameras, train_indices: list[int]) -> list[in
     training cameras' median spacing, plus 1 - cos of the angle between their optical axes. [N] rows as a list;
     -1 where no other training view exists."""
     train = torch.as_tensor(list(train_indices), dtype=torch.long)
+    cameras = cameras.to("cpu")
     centers = cameras.centers.double()
     axes = cameras.camera_to_worlds[:, :3, 2].double()
     apart = torch.cdist(centers, centers[train])  # [N, V]
