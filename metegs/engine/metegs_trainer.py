@@ -275,7 +275,8 @@ class MeteGSTrainer(Trainer):
     def _decide_record_prior(self, name: str, fog: FogAnalytic) -> None:
         """What sets ``fog``'s β where the photometric fit alone cannot: ``auto`` asks if the views see the scene's
         (initial) points over distances far enough apart for the photos to measure β
-        (`MEASURABLE_DISTANCE_SPREAD`); where they are not, blind training holds it by the dark-channel prior
+        (`MEASURABLE_DISTANCE_SPREAD`; unknown, so not, from random points); where they are not, blind training holds
+        it by the dark-channel prior
         (`dark_channel`), training with clean references (or with that prior off) near the met record's. Blind
         under rain heavier than light through dense fog the record holds it wherever the views are
         (`_rain_through_dense_fog`)."""
@@ -283,12 +284,18 @@ class MeteGSTrainer(Trainer):
 
         if not fog.log_beta.requires_grad:
             return
-        spread = distance_spread(self.dataset.cameras[self.dataset.train_indices], self.model.means.detach())
+        if self.random_init:  # random points fill the views' overlap and say nothing of where the scene lies
+            spread = None
+            seen = "the Gaussians start from random points, so how far apart the views see the scene is unknown"
+        else:
+            spread = distance_spread(self.dataset.cameras[self.dataset.train_indices], self.model.means.detach())
+            seen = (
+                f"the views see a scene point from distances {'(unknown)' if spread is None else f'{spread:.2f}x'} "
+                f"apart (median)"
+            )
         measurable = spread is not None and spread >= MEASURABLE_DISTANCE_SPREAD
-        seen = (
-            f"the views see a scene point from distances {'(unknown)' if spread is None else f'{spread:.2f}x'} apart "
-            f"(median){'' if measurable else f', under {MEASURABLE_DISTANCE_SPREAD}x'}"
-        )
+        if not measurable and spread is not None:
+            seen += f", under {MEASURABLE_DISTANCE_SPREAD}x"
         dark = self._decide_dark_channel(fog, measurable, seen)
         mode, beta = fog.config.record_prior, f"{float(fog.record_log_beta.exp().mean()):.2e}/m"
         flat = "off: where the photos cannot measure β they cannot tell how it varies"
