@@ -86,8 +86,11 @@ class ViewExposure(nn.Module):
         gains, offsets = self.gains_and_offsets()
         levels = torch.tensor(TONE_LEVELS, dtype=gains.dtype, device=gains.device)
         tones = gains[:, None, :] * levels[None, :, None] + offsets[:, None, :]  # [V, L, 3]
-        train = [view for view, row in enumerate(self.slot) if row >= 0]
-        neighbour = torch.as_tensor([self.nearest[view] for view in train], device=tones.device)
+        view_of_row = [0] * views
+        for view, row in enumerate(self.slot):
+            if row >= 0:
+                view_of_row[row] = view
+        neighbour = torch.as_tensor([self.nearest[view] for view in view_of_row], device=tones.device)
         others = (tones.sum(dim=0, keepdim=True) - tones) / (views - 1)
         near = float((tones[neighbour] - tones).square().mean().sqrt())
         average = float((others - tones).square().mean().sqrt())

@@ -57,6 +57,18 @@ def test_test_views_take_the_nearest_photos_tone_where_tone_follows_the_street()
     assert torch.allclose(exposure(rgb, 11), rgb * gains[5] + offsets[5])  # past the end: the last photo's
 
 
+def test_the_leave_one_out_errors_do_not_depend_on_the_order_of_the_training_views():
+    cameras = cameras_along_a_street(12)
+    ramp = torch.linspace(0.6, 1.4, 6)[:, None].expand(6, 3)
+    errors = []
+    for train in (list(range(0, 12, 2)), [10, 0, 8, 2, 6, 4]):
+        exposure = ViewExposure(train, 12, nearest=nearest_training_rows(cameras, train))
+        with torch.no_grad():
+            exposure.offsets[:, 0] = ramp[torch.as_tensor(train) // 2] - 1.0  # each view its place's tone
+        errors.append(exposure.tone_errors())
+    assert errors[0] == pytest.approx(errors[1]) and errors[0][0] < errors[0][1]
+
+
 def test_test_views_keep_the_average_tone_where_tone_jumps_from_shot_to_shot():
     jumps = torch.tensor([0.6, 1.4, 0.6, 1.4, 0.6, 1.4])[:, None].expand(6, 3)  # neighbours disagree most
     exposure = street_exposure(jumps)
