@@ -100,7 +100,10 @@ def evaluate_run(trainer, split: str = "test", lpips_net: str = "alex") -> dict:
     references = [trainer.reference(i, bg) for i in idx]  # clean references when the scene has them
     metrics = evaluate_images(trainer.render_views(idx), references, lpips_model=model, lpips_reason=reason)
     metrics.update(
-        split=split, reference="clean" if ds.clean_images is not None else "photo", num_gaussians=len(trainer.model)
+        split=split,
+        reference="clean" if ds.clean_images is not None else "photo",
+        test_tone=trainer.test_tone(),
+        num_gaussians=len(trainer.model),
     )
     return metrics
 

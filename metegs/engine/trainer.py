@@ -657,6 +657,7 @@ class Trainer:
             "train_seconds": round(self.train_seconds, 2),
             "wall_seconds": round(time.perf_counter() - self._created, 2),
             "image_size": [int(self.dataset.cameras.width[0]), int(self.dataset.cameras.height[0])],
+            "test_tone": self.test_tone(),
             **self.extra_metrics(),
             "per_view": m.get("per_view"),
             "history": self.history,
@@ -666,6 +667,13 @@ class Trainer:
             self.save_renders(idx, split)
         save_ply(self.model, self.run_dir / "scene.ply", **self.ply_layout())
         return metrics
+
+    def test_tone(self) -> str | None:
+        """The tone test views are scored in: "nearest" (their nearest training photo's), "average", or None where
+        the run learns no per-photo exposure."""
+        if self.exposure is None:
+            return None
+        return "nearest" if self.exposure.tones_from_nearest() else "average"
 
     def _decide_test_tone(self) -> None:
         """Record which tone the test views are scored in (`ViewExposure.tones_from_nearest`)."""

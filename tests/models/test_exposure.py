@@ -1,6 +1,7 @@
 """Per-view exposure: the affines' gauge, what they do to a render, which tone test views take, and runs on photos
 of varying exposure."""
 
+import json
 from dataclasses import replace
 
 import pytest
@@ -8,6 +9,7 @@ import torch
 
 from metegs.cameras import Cameras
 from metegs.engine.optim import OptimConfig
+from metegs.engine.run import evaluate_run
 from metegs.models.exposure import ViewExposure, nearest_training_rows
 
 
@@ -146,6 +148,9 @@ def orbit_run(tmp_path_factory):
 def test_test_views_scored_in_their_nearest_photos_tone_where_tone_follows_the_orbit(orbit_run):
     trainer, metrics = orbit_run
     assert trainer.decisions["test_tone"].startswith("their nearest training photo's"), trainer.decisions
+    assert metrics["test_tone"] == "nearest"
+    saved = json.loads((trainer.run_dir / "metrics.json").read_text())
+    assert saved["test_tone"] == "nearest" and evaluate_run(trainer)["test_tone"] == "nearest"
     trainer.exposure.nearest = None  # the same Gaussians, test views in the photos' average tone
     average = trainer.record_eval(quick=True)["psnr"]
     assert metrics["psnr"] > average + 0.5, (metrics["psnr"], average)
@@ -153,6 +158,7 @@ def test_test_views_scored_in_their_nearest_photos_tone_where_tone_follows_the_o
 
 def test_test_views_keep_the_average_tone_where_each_photo_was_exposed_at_random(exposure_runs):
     assert exposure_runs["with"][0].decisions["test_tone"].startswith("the photos' average (each training photo")
+    assert exposure_runs["with"][1]["test_tone"] == "average" and exposure_runs["without"][1]["test_tone"] is None
 
 
 def test_test_views_keep_the_average_tone_against_clean_references(tmp_path):
