@@ -682,7 +682,7 @@ class Trainer:
             self.decide("test_tone", f"the photos' average ({why})")
         else:
             near, average = self.exposure.tone_errors()
-            chosen = "their nearest training photo's" if self.exposure.tones_from_nearest() else "the photos' average"
+            chosen = "their nearest training photo's" if near < average else "the photos' average"
             self.decide(
                 "test_tone",
                 f"{chosen} (each training photo's tone from its nearest other photo's: {near:.4f} RMS; from the "

@@ -59,6 +59,8 @@ class ViewExposure(nn.Module):
         train = torch.as_tensor(list(train_indices), dtype=torch.long)
         slot = torch.full((num_views,), -1, dtype=torch.long)
         slot[train] = torch.arange(len(train))
+        self.train_views: list[int] = train.tolist()
+        """The dataset view of each row of ``offsets``."""
         self.slot: list[int] = slot.tolist()
         """Row of each dataset view in ``offsets`` (-1: not a training view); a list, so a step on a GPU reads it
         without waiting for the device."""
@@ -86,11 +88,7 @@ class ViewExposure(nn.Module):
         gains, offsets = self.gains_and_offsets()
         levels = torch.tensor(TONE_LEVELS, dtype=gains.dtype, device=gains.device)
         tones = gains[:, None, :] * levels[None, :, None] + offsets[:, None, :]  # [V, L, 3]
-        view_of_row = [0] * views
-        for view, row in enumerate(self.slot):
-            if row >= 0:
-                view_of_row[row] = view
-        neighbour = torch.as_tensor([self.nearest[view] for view in view_of_row], device=tones.device)
+        neighbour = torch.as_tensor([self.nearest[view] for view in self.train_views], device=tones.device)
         others = (tones.sum(dim=0, keepdim=True) - tones) / (views - 1)
         near = float((tones[neighbour] - tones).square().mean().sqrt())
         average = float((others - tones).square().mean().sqrt())
