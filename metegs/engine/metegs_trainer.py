@@ -175,6 +175,8 @@ class MeteGSTrainer(Trainer):
                 f"on: the trimmed L1 fits the {r.quantile:.0%} quantile of a pixel's photos, not their median: "
                 f"{rain_phrase(rain)} brightens nearly every pixel a little, and rain only adds light"
             )
+            if r.ssim_lambda is not None:
+                why += f"; D-SSIM at weight {r.ssim_lambda:g} (--robust.ssim-lambda)"
         self.decide("low-quantile fit", why)
 
     def _build_weather(self) -> list[WeatherModel]:
@@ -574,12 +576,14 @@ class MeteGSTrainer(Trainer):
         """The weather branch's (trimmed) photometric loss, the weather models' priors and, with clean references,
         the clean branch's L1 and perceptual terms."""
         c = self.config
-        weights, quantile = None, 0.5
+        weights, quantile, ssim_lambda = None, 0.5, None
         if self.robust_from is not None and self.step >= self.robust_from:
             weights = inlier_weights(target - render.rgb.detach(), c.robust)
             quantile = c.robust.quantile
+            if quantile < 0.5:
+                ssim_lambda = c.robust.ssim_lambda  # None: the loss's own
             stats["inliers"] = float(weights.mean())
-        loss = c.weights.photo * self.loss_fn(render.rgb, target, weights, quantile)
+        loss = c.weights.photo * self.loss_fn(render.rgb, target, weights, quantile, ssim_lambda)
         for m in self.weather_models:
             prior = m.prior(index)
             if prior is not None:

@@ -37,11 +37,12 @@ class PhotometricLoss:
         target: torch.Tensor,
         weights: torch.Tensor | None = None,
         quantile: float = 0.5,
+        ssim_lambda: float | None = None,
     ) -> torch.Tensor:
         """Scalar loss of ``pred`` against ``target`` (both [H, W, 3]); ``weights`` [H, W] (e.g. an inlier mask)
         restricts both terms to the pixels it weighs, as a weighted mean; ``quantile`` below 0.5 makes the L1 term
-        `pinball_l1` (0.5: plain L1)."""
-        lam = self.config.ssim_lambda
+        `pinball_l1` (0.5: plain L1); ``ssim_lambda`` replaces the configured weight of the D-SSIM term."""
+        lam = self.config.ssim_lambda if ssim_lambda is None else ssim_lambda
         w = None if weights is None else weights[..., None]
         denom = None if w is None else w.sum().clamp_min(1.0)
         diff = pinball_l1(pred, target, quantile)

@@ -13,7 +13,9 @@ photometric loss sees.
 The mask leaves out what stands out; dense rain also brightens almost every other pixel a little (blurred streak
 tails, a veil), so the median of a pixel's photos, which L1 fits, sits above the clean scene. Rain only ever adds
 light to a photo (Garg and Nayar, CVPR 2004), so with the mask the L1 fits a low ``quantile`` of a pixel's photos
-(`metegs.losses.photometric.pinball_l1`).
+(`metegs.losses.photometric.pinball_l1`). The SSIM term can weigh less then (``ssim_lambda``): it rewards a render
+whose local contrast and structure follow the photo's, streaks included, and a fit that may not be brighter than the
+photos follows them by darkening the gaps between the streaks, which leaves dark strokes in the clean scene.
 """
 
 from __future__ import annotations
@@ -50,6 +52,9 @@ class RobustMaskConfig:
     quantile: Annotated[float, Range(0.0, 0.5, lo_open=True)] = 0.1
     """With the mask, the L1 fits this quantile of a pixel's photos instead of their median (0.5: plain L1): rain
     brightens nearly every pixel a little, so the clean scene lies under most of its photos."""
+    ssim_lambda: Annotated[float | None, FRACTION] = None
+    """Weight of the D-SSIM term while the L1 fits the low quantile (None: the loss's own): SSIM asks for the
+    photos' local contrast, streaks included, which a fit held under the photos makes by darkening between them."""
 
 
 @torch.no_grad()

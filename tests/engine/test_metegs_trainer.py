@@ -9,6 +9,7 @@ import torch
 from metegs.data.config import DatasetConfig, SyntheticSceneConfig
 from metegs.densify.adc import ADCConfig
 from metegs.engine.metegs_config import MeteGSConfig
+from metegs.losses.photometric import PhotometricLossConfig
 from metegs.models.gtn import GTNConfig
 from metegs.render import RenderSettings
 from metegs.weather.conditions import ConditionsConfig
@@ -445,6 +446,35 @@ def test_heavy_rain_fits_a_low_quantile_of_the_photos(tmp_path):
             render = trainer.photo_render(index, background)
             losses.append(float(trainer.step_loss(index, background, render, trainer.target(index, background), {})))
     assert losses[0] != pytest.approx(losses[1], rel=1e-3)
+
+
+def test_the_ssim_weight_of_the_low_quantile_fit_is_its_own(tmp_path):
+    """D-SSIM asks for the photos' streaky local contrast, which a fit held under the photos makes by darkening the
+    gaps between the streaks (dark strokes in the fox's clean render): while the L1 fits the low quantile, the
+    weather branch's loss takes `RobustMaskConfig.ssim_lambda` where it is set; with the median the loss's own."""
+    from metegs.losses.robust import RobustMaskConfig
+
+    def loss(name: str, **robust) -> float:
+        trainer = tiny_metegs(tmp_path / name, robust=RobustMaskConfig(**robust), max_steps=1).setup()
+        trainer.step = trainer.robust_from
+        index, background = trainer.dataset.train_indices[0], trainer.background(training=True)
+        with torch.no_grad():
+            render = trainer.photo_render(index, background)
+            return float(trainer.step_loss(index, background, render, trainer.target(index, background), {}))
+
+    low = {lam: loss(f"low{lam}", ssim_lambda=lam) for lam in (0.0, 0.05, 0.2)}
+    assert (
+        "D-SSIM at weight 0.05"
+        in tiny_metegs(tmp_path / "said", robust=RobustMaskConfig(ssim_lambda=0.05), max_steps=1)
+        .setup()
+        .decisions["low-quantile fit"]
+    )
+    assert RobustMaskConfig().ssim_lambda is None
+    assert loss("own", ssim_lambda=None) == pytest.approx(loss("own2", ssim_lambda=PhotometricLossConfig().ssim_lambda))
+    assert low[0.0] != pytest.approx(low[0.05], rel=1e-4) and low[0.05] != pytest.approx(low[0.2], rel=1e-4)
+    # the loss is linear in the weight: (1 − λ)·L1 + λ·(1 − SSIM), the priors beside it unchanged
+    assert low[0.05] == pytest.approx(low[0.0] + (low[0.2] - low[0.0]) * 0.05 / 0.2, rel=1e-4)
+    assert loss("median", quantile=0.5, ssim_lambda=0.0) == pytest.approx(loss("median2", quantile=0.5), rel=1e-6)
 
 
 def test_sharp_weather_prunes_opacity_as_3dgs_does(tmp_path):
