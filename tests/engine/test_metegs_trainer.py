@@ -454,27 +454,28 @@ def test_the_ssim_weight_of_the_low_quantile_fit_is_its_own(tmp_path):
     weather branch's loss takes `RobustMaskConfig.ssim_lambda` where it is set; with the median the loss's own."""
     from metegs.losses.robust import RobustMaskConfig
 
-    def loss(name: str, **robust) -> float:
+    def run(name: str, **robust) -> tuple[float, str]:
+        """(the weather branch's loss once the low-quantile fit is on, the decision `low-quantile fit`)."""
         trainer = tiny_metegs(tmp_path / name, robust=RobustMaskConfig(**robust), max_steps=1).setup()
         trainer.step = trainer.robust_from
         index, background = trainer.dataset.train_indices[0], trainer.background(training=True)
         with torch.no_grad():
             render = trainer.photo_render(index, background)
-            return float(trainer.step_loss(index, background, render, trainer.target(index, background), {}))
+            loss = trainer.step_loss(index, background, render, trainer.target(index, background), {})
+        return float(loss), trainer.decisions["low-quantile fit"]
 
-    low = {lam: loss(f"low{lam}", ssim_lambda=lam) for lam in (0.0, 0.05, 0.2)}
-    assert (
-        "D-SSIM at weight 0.05"
-        in tiny_metegs(tmp_path / "said", robust=RobustMaskConfig(ssim_lambda=0.05), max_steps=1)
-        .setup()
-        .decisions["low-quantile fit"]
-    )
+    own = PhotometricLossConfig().ssim_lambda
     assert RobustMaskConfig().ssim_lambda is None
-    assert loss("own", ssim_lambda=None) == pytest.approx(loss("own2", ssim_lambda=PhotometricLossConfig().ssim_lambda))
-    assert low[0.0] != pytest.approx(low[0.05], rel=1e-4) and low[0.05] != pytest.approx(low[0.2], rel=1e-4)
+    runs = {lam: run(f"low{lam}", ssim_lambda=lam) for lam in (0.0, 0.05, own)}
+    low = {lam: loss for lam, (loss, _) in runs.items()}
+    assert "D-SSIM at weight 0.05" in runs[0.05][1]
+    unset, said = run("unset")
+    assert unset == pytest.approx(low[own]) and "D-SSIM" not in said
+    assert low[0.0] != pytest.approx(low[0.05], rel=1e-4) and low[0.05] != pytest.approx(low[own], rel=1e-4)
     # the loss is linear in the weight: (1 − λ)·L1 + λ·(1 − SSIM), the priors beside it unchanged
-    assert low[0.05] == pytest.approx(low[0.0] + (low[0.2] - low[0.0]) * 0.05 / 0.2, rel=1e-4)
-    assert loss("median", quantile=0.5, ssim_lambda=0.0) == pytest.approx(loss("median2", quantile=0.5), rel=1e-6)
+    assert low[0.05] == pytest.approx(low[0.0] + (low[own] - low[0.0]) * 0.05 / own, rel=1e-4)
+    median = run("median", quantile=0.5, ssim_lambda=0.0)[0]
+    assert median == pytest.approx(run("median2", quantile=0.5)[0], rel=1e-6)
 
 
 def test_sharp_weather_prunes_opacity_as_3dgs_does(tmp_path):
