@@ -24,7 +24,7 @@ from metegs.gaussians.model import GaussianModel
 from metegs.gaussians.sh import rgb_to_sh
 from metegs.losses.dark_channel import dark_channel_loss
 from metegs.losses.photometric import box_detail
-from metegs.losses.robust import inlier_weights
+from metegs.losses.robust import inlier_weights, stroke_width_px, without_bright_strokes
 from metegs.meteo.physics import LN20
 from metegs.models.gtn import may_be_visible
 from metegs.render import RenderSettings
@@ -147,12 +147,15 @@ class MeteGSTrainer(Trainer):
 
     def _setup_robust(self) -> None:
         """The robust mask (`robust_from`) where rain heavier than light falls, and with it the low quantile of a
-        pixel's photos that its L1 fits (`RobustMaskConfig.quantile`)."""
+        pixel's photos that its L1 fits (`RobustMaskConfig.quantile`) and the strokes D-SSIM does not see
+        (`stroke_width`)."""
         c, r = self.config, self.config.robust
         rain = self.weather_theta(self.scene).rain
         wanted = r.enabled and rain.intensity_class not in LIGHT_OR_NONE
         self.robust_from = int(round(r.start * c.max_steps)) if wanted else None
         """Step from which the weather branch's photometric loss is trimmed to inliers (None: never)."""
+        self.stroke_width = 1
+        """Width of the square that takes bright strokes out of D-SSIM's pair in the low-quantile fit (1: none)."""
         if not r.enabled:
             self.decide("robust mask", "off")
             return
@@ -177,6 +180,16 @@ class MeteGSTrainer(Trainer):
             )
             if r.ssim_lambda is not None:
                 why += f"; D-SSIM at weight {r.ssim_lambda:g} (--robust.ssim-lambda)"
+            longer = max(max(size) for size in self.dataset.sizes)
+            self.stroke_width = stroke_width_px(r.stroke_px, longer)
+            if self.stroke_width > 1:
+                why += (
+                    f"; D-SSIM without the bright strokes under {self.stroke_width} px wide and {r.min_excess:g} over "
+                    "their surroundings, in the photo or the render (the photo's streaks, which the render would fake "
+                    "by darkening between them)"
+                )
+            elif r.stroke_px > 0:
+                why += f"; streaks are under 2 px wide at {longer} px, so D-SSIM sees render and photo as they are"
         self.decide("low-quantile fit", why)
 
     def _build_weather(self) -> list[WeatherModel]:
@@ -576,14 +589,16 @@ class MeteGSTrainer(Trainer):
         """The weather branch's (trimmed) photometric loss, the weather models' priors and, with clean references,
         the clean branch's L1 and perceptual terms."""
         c = self.config
-        weights, quantile, ssim_lambda = None, 0.5, None
+        weights, quantile, ssim_lambda, ssim_images = None, 0.5, None, None
         if self.robust_from is not None and self.step >= self.robust_from:
             weights = inlier_weights(target - render.rgb.detach(), c.robust)
             quantile = c.robust.quantile
             if quantile < 0.5:
                 ssim_lambda = c.robust.ssim_lambda  # None: the loss's own
+                if self.stroke_width > 1:
+                    ssim_images = without_bright_strokes(render.rgb, target, self.stroke_width, c.robust.min_excess)
             stats["inliers"] = float(weights.mean())
-        loss = c.weights.photo * self.loss_fn(render.rgb, target, weights, quantile, ssim_lambda)
+        loss = c.weights.photo * self.loss_fn(render.rgb, target, weights, quantile, ssim_lambda, ssim_images)
         for m in self.weather_models:
             prior = m.prior(index)
             if prior is not None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 
 from metegs.losses.photometric import PhotometricLoss, PhotometricLossConfig
-from metegs.losses.robust import RobustMaskConfig, inlier_weights
+from metegs.losses.robust import RobustMaskConfig, inlier_weights, stroke_width_px, without_bright_strokes
 
 
 def _residual_with_streaks(h=64, w=96):
@@ -95,3 +95,39 @@ def test_the_quantile_reaches_the_l1_term_only():
     assert loss(pred, darker, ones) < loss(pred, darker, ones, quantile=0.1)
     plain = PhotometricLoss(PhotometricLossConfig(ssim_lambda=0.0))
     assert torch.isclose(plain(pred, target, ones, 0.1), 0.2 * (target - pred).mean())
+
+
+def test_without_bright_strokes_takes_streaks_from_either_side():
+    """Where the photo or the render holds a stroke narrower than the square and brighter than its surroundings by
+    more than ``min_excess``, both are opened; fainter strokes (texture), dark ones and wide bright patches stay,
+    and the render's gradient passes."""
+    photo = torch.full((24, 30, 3), 0.4)
+    photo[:, 5] += 0.5  # a streak in the photo
+    photo[:, 8] += 0.02  # faint texture
+    photo[:, 20] -= 0.3  # a dark stroke
+    photo[4:12, 24:29] = 0.9  # a bright patch wider than the square
+    render = torch.full((24, 30, 3), 0.4, requires_grad=True)
+    modelled = render + torch.nn.functional.pad(torch.full((24, 1, 3), 0.3), (0, 0, 15, 14))  # a streak at x = 15
+    out_render, out_photo = without_bright_strokes(modelled, photo, 3, 0.04)
+    torch.testing.assert_close(out_photo[:, 5], torch.full((24, 3), 0.4))
+    torch.testing.assert_close(out_render[:, 15], torch.full((24, 3), 0.4))
+    kept = torch.ones(24, 30, dtype=torch.bool)
+    kept[:, 5] = kept[:, 15] = False
+    assert torch.equal(out_photo[kept], photo[kept]) and torch.equal(out_photo[:, 15], photo[:, 15])
+    assert torch.equal(out_render.detach()[kept], modelled.detach()[kept])
+    out_render.sum().backward()  # every output passes its gradient to the pixel it came from
+    assert float(render.grad.sum()) == out_render.numel()
+    faint = without_bright_strokes(modelled.detach(), photo, 3, 0.6)  # nothing stands out by 0.6
+    assert torch.equal(faint[1], photo) and torch.equal(faint[0], modelled.detach())
+    off = without_bright_strokes(modelled.detach(), photo, 0, 0.04)
+    assert torch.equal(off[1], photo) and torch.equal(off[0], modelled.detach())
+
+
+def test_the_stroke_width_grows_with_the_image():
+    """`stroke_width_px`: the width given at 480 px, scaled to the image's longer side, odd; 1 under two pixels."""
+    assert stroke_width_px(3.0, 480) == 3
+    assert stroke_width_px(3.0, 514) == 3
+    assert stroke_width_px(3.0, 640) == 5  # 4 px, and an odd square
+    assert stroke_width_px(3.0, 1600) == 11
+    assert stroke_width_px(3.0, 160) == 1 and stroke_width_px(3.0, 300) == 3
+    assert stroke_width_px(0.0, 1600) == 1
