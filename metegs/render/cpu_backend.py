@@ -5,7 +5,8 @@ Three ops, each the equivalent of a torch reference stage (and tested against it
 `gaussian_colors`), ``csrc/binning.cpp`` (depth-sorted tile lists with an exact ellipse-tile test;
 reference: `bin_gaussians`) and ``csrc/composite.cpp`` (tile compositing, `CompositeTiles`; reference:
 `torch_backend.composite_tiles`); beside them ``csrc/ssim.cpp``, the training loss's SSIM map with its backward
-(`metegs.losses.fused_ssim`). The extension is compiled with `torch.utils.cpp_extension` on first use (about 50 s on 2 cores)
+(`metegs.losses.fused_ssim`), and ``csrc/opening.cpp``, the grey-scale opening of `metegs.losses.photometric.open_bright`
+with its backward (`metegs.losses.fused_opening`). The extension is compiled with `torch.utils.cpp_extension` on first use (about 50 s on 2 cores)
 and cached in ``~/.cache/metegs/torch_extensions/<torch version>/<cpu tag>/`` (``$XDG_CACHE_HOME``
 is honoured, ``METEGS_EXTENSIONS_DIR`` overrides the whole path); later processes only load it. x86 intrinsics are
 used only where the compiler targets them, and never with ``METEGS_CPU_PORTABLE=1`` (`machine_cflags`).
@@ -40,7 +41,9 @@ from metegs.render.pipeline import finish_render, resolve_sh_degree
 from metegs.render.tiles import TILE_SIZE, TileBins
 
 CSRC = Path(__file__).parent / "csrc"
-SOURCES = [CSRC / name for name in ("bindings.cpp", "project.cpp", "binning.cpp", "composite.cpp", "ssim.cpp")]
+SOURCES = [
+    CSRC / name for name in ("bindings.cpp", "project.cpp", "binning.cpp", "composite.cpp", "ssim.cpp", "opening.cpp")
+]
 HEADERS = [CSRC / "metegs_cpu.h", CSRC / "pool.h"]
 _TORCH_TAG = "".join(ch if ch.isalnum() else "_" for ch in torch.__version__)
 EXTENSION_NAME = f"metegs_cpu_composite_{_TORCH_TAG}"

@@ -26,6 +26,10 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         py::arg("x"), py::arg("y"), py::arg("window"), py::arg("c1"), py::arg("c2"));
   m.def("ssim_backward", &metegs_cpu::ssim_backward, "backward of ssim_forward with respect to x (CPU)", nogil,
         py::arg("x"), py::arg("y"), py::arg("window"), py::arg("partials"), py::arg("g_map"));
+  m.def("opening_forward", &metegs_cpu::opening_forward, "grey-scale opening by a square and its source pixels (CPU)",
+        nogil, py::arg("x"), py::arg("k"), py::arg("with_index") = true);
+  m.def("opening_backward", &metegs_cpu::opening_backward, "backward of opening_forward (CPU)", nogil,
+        py::arg("index"), py::arg("g_out"));
   m.def("set_num_threads", [](int64_t n) { metegs::thread_override() = std::max<int64_t>(n, 0); },
         "threads of the metegs kernels called from this thread (0: torch's intra-op count)", py::arg("n"));
   m.def("get_num_threads", &metegs::num_threads, "threads of the metegs kernels called from this thread");

@@ -281,4 +281,11 @@ std::vector<at::Tensor> ssim_forward(at::Tensor x, at::Tensor y, at::Tensor wind
 // -> gradient of x [B, H, W, C] given the map's gradient g_map [B, H, W, C].
 at::Tensor ssim_backward(at::Tensor x, at::Tensor y, at::Tensor window, at::Tensor partials, at::Tensor g_map);
 
+// opening.cpp: grey-scale opening of x [B, H, W, C] (each channel) by a k x k square (k odd), windows clipped at the
+// borders -> {opened [B, H, W, C], index [B, H, W, C] int32: the flat index in x each value was picked from, or an
+// empty tensor unless with_index}.
+std::vector<at::Tensor> opening_forward(at::Tensor x, int64_t k, bool with_index);
+// -> gradient of x given the opening's gradient g_out [B, H, W, C] and opening_forward's index.
+at::Tensor opening_backward(at::Tensor index, at::Tensor g_out);
+
 }  // namespace metegs_cpu
