@@ -45,3 +45,37 @@ def fused_opening_available(image: torch.Tensor) -> bool:
 def fused_opening(image: torch.Tensor, k: int) -> torch.Tensor:
     """[H, W, C] -> [H, W, C]: the compiled opening of ``image`` by an odd ``k`` × ``k`` square."""
     return FusedOpening.apply(image[None].contiguous(), k)[0]
+
+
+class FusedStrokesOut(torch.autograd.Function):
+    """(render, photo) [B, H, W, C] with the pixels where either holds a bright stroke narrower than ``k`` that
+    stands out of its opening by more than ``min_excess`` replaced by both openings; differentiable in ``render``."""
+
+    @staticmethod
+    def forward(ctx, render, photo, k, min_excess):
+        from metegs.render.cpu_backend import load_extension
+
+        out = load_extension().strokes_out_forward(render, photo, k, min_excess, with_index=render.requires_grad)
+        render_out, photo_out, index, stroke = out
+        ctx.save_for_backward(index, stroke)
+        ctx.mark_non_differentiable(photo_out)
+        return render_out, photo_out
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, g_render, _g_photo):
+        from metegs.render.cpu_backend import load_extension
+
+        index, stroke = ctx.saved_tensors
+        return load_extension().strokes_out_backward(index, stroke, g_render), None, None, None
+
+
+def fused_strokes_out(
+    render: torch.Tensor, photo: torch.Tensor, k: int, min_excess: float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """(render, photo), each [H, W, C], with their thin bright strokes taken out by the compiled op (see
+    `metegs.losses.robust.without_bright_strokes`); ``k`` odd."""
+    render_out, photo_out = FusedStrokesOut.apply(
+        render[None].contiguous(), photo.to(render.dtype)[None].contiguous(), k, float(min_excess)
+    )
+    return render_out[0], photo_out[0]

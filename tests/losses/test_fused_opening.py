@@ -1,10 +1,12 @@
-"""The compiled opening of `open_bright` against the pooled torch reference and finite differences."""
+"""The compiled opening of `open_bright`, and `without_bright_strokes` built on it, against their torch references
+and finite differences."""
 
 import pytest
 import torch
 
-from metegs.losses.fused_opening import FusedOpening, fused_opening
+from metegs.losses.fused_opening import FusedOpening, FusedStrokesOut, fused_opening, fused_strokes_out
 from metegs.losses.photometric import open_bright, pooled_opening
+from metegs.losses.robust import pooled_strokes_out, without_bright_strokes
 from metegs.render import cpu_backend
 from metegs.render.cpu_backend import CpuExtensionError
 
@@ -51,14 +53,14 @@ def test_a_photo_without_gradient_is_opened_alike_without_the_source_index():
 
 
 def made_by_the_kernel(t: torch.Tensor) -> bool:
-    """Whether ``t``'s autograd graph holds `FusedOpening`."""
+    """Whether ``t``'s autograd graph holds `FusedOpening` or `FusedStrokesOut`."""
     todo, seen = [t.grad_fn], set()
     while todo:
         fn = todo.pop()
         if fn is None or fn in seen:
             continue
         seen.add(fn)
-        if FusedOpening.__name__ in type(fn).__name__:
+        if type(fn).__name__.startswith((FusedOpening.__name__, FusedStrokesOut.__name__)):
             return True
         todo += [f for f, _ in fn.next_functions]
     return False
@@ -78,3 +80,31 @@ def test_bad_input_is_refused_by_the_kernel():
         ext.opening_forward(torch.rand(1, 8, 8, 3), 4)
     with pytest.raises(RuntimeError, match=r"\[B, H, W, C\]"):
         ext.opening_forward(torch.rand(8, 8, 3), 3)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("k", [3, 5])
+def test_strokes_out_matches_the_torch_ops_values_and_gradient(dtype, k):
+    g = torch.Generator().manual_seed(k)
+    photo = (0.4 + 0.1 * torch.rand(40, 60, 3, generator=g, dtype=dtype)).clamp(0, 1)
+    photo[:, 7] += 0.5  # a streak in the photo
+    render = (photo + 0.05 * torch.randn(40, 60, 3, generator=g, dtype=dtype)).requires_grad_(True)
+    with torch.no_grad():
+        render[10:30, 20] += 0.4  # a modelled streak where the photo has none
+    expected, fused = pooled_strokes_out(render, photo, k, 0.04), fused_strokes_out(render, photo, k, 0.04)
+    assert torch.equal(fused[0], expected[0]) and torch.equal(fused[1], expected[1])
+    assert bool((fused[1] != photo).any(dim=-1)[:, 7].all())  # the photo's streak is taken out
+    assert bool((fused[0] != render).any(dim=-1)[10:30, 20].all())  # and the render's
+    g_out = torch.randn(40, 60, 3, generator=g, dtype=dtype)
+    (g_expected,) = torch.autograd.grad(expected[0], render, g_out)
+    (g_fused,) = torch.autograd.grad(fused[0], render, g_out)
+    torch.testing.assert_close(g_fused, g_expected)
+    assert not fused[1].requires_grad
+
+
+def test_without_bright_strokes_runs_the_kernel_unless_the_photo_needs_a_gradient():
+    render = image((20, 24, 3), seed=6).requires_grad_(True)
+    photo = image((20, 24, 3), seed=7)
+    assert made_by_the_kernel(without_bright_strokes(render, photo, 3, 0.04)[0])
+    assert not made_by_the_kernel(without_bright_strokes(render, photo.requires_grad_(True), 3, 0.04)[0])
+    assert without_bright_strokes(render, photo, 1, 0.04) == (render, photo)  # under 2 px: nothing to take

@@ -30,6 +30,11 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         nogil, py::arg("x"), py::arg("k"), py::arg("with_index") = true);
   m.def("opening_backward", &metegs_cpu::opening_backward, "backward of opening_forward (CPU)", nogil,
         py::arg("index"), py::arg("g_out"));
+  m.def("strokes_out_forward", &metegs_cpu::strokes_out_forward,
+        "render and photo with their thin bright strokes opened (CPU)", nogil, py::arg("render"), py::arg("photo"),
+        py::arg("k"), py::arg("min_excess"), py::arg("with_index") = true);
+  m.def("strokes_out_backward", &metegs_cpu::strokes_out_backward, "backward of strokes_out_forward (CPU)", nogil,
+        py::arg("index"), py::arg("stroke"), py::arg("g_out"));
   m.def("set_num_threads", [](int64_t n) { metegs::thread_override() = std::max<int64_t>(n, 0); },
         "threads of the metegs kernels called from this thread (0: torch's intra-op count)", py::arg("n"));
   m.def("get_num_threads", &metegs::num_threads, "threads of the metegs kernels called from this thread");

@@ -1,6 +1,7 @@
 // opening.cpp: grey-scale opening of images (each channel) by a k x k square, the erosion's minimum then the
-// dilation's maximum over windows clipped at the borders (reference: metegs.losses.photometric.open_bright's torch
-// path, two stride-1 max_pool2d), with the input pixel each output was picked from.
+// dilation's maximum over windows clipped at the borders (reference: metegs.losses.photometric.pooled_opening, two
+// stride-1 max_pool2d), with the input pixel each output was picked from; and a render and a photo with their
+// thin bright strokes taken out (reference: metegs.losses.robust.without_bright_strokes' torch path).
 //
 // The square is separable: a row pass then a column pass each way, k compares per pixel and pass where the pooled
 // reference visits k^2. Each pass carries the flat index of the input pixel its value came from, so the backward
@@ -114,6 +115,59 @@ at::Tensor opening_backward(at::Tensor index, at::Tensor g_out) {
     scalar_t* gx = g_x.data_ptr<scalar_t>();
     const int64_t N = g_out.numel();
     for (int64_t i = 0; i < N; ++i) gx[idx[i]] += g[i];  // serial: outputs share sources
+  });
+  return g_x;
+}
+
+std::vector<at::Tensor> strokes_out_forward(at::Tensor render, at::Tensor photo, int64_t k, double min_excess,
+                                            bool with_index) {
+  TORCH_CHECK(render.sizes() == photo.sizes(), "strokes_out: shapes differ, ", render.sizes(), " vs ", photo.sizes());
+  TORCH_CHECK(render.scalar_type() == photo.scalar_type(), "strokes_out: dtypes differ");
+  auto r_open = opening_forward(render, k, with_index), p_open = opening_forward(photo, k, false);
+  render = render.contiguous(), photo = photo.contiguous();
+  const int64_t pixels = render.numel() / render.size(3), C = render.size(3);
+  auto r_out = at::empty_like(render), p_out = at::empty_like(photo);
+  auto stroke = at::empty({render.size(0), render.size(1), render.size(2)}, render.options().dtype(at::kBool));
+  AT_DISPATCH_FLOATING_TYPES(render.scalar_type(), "metegs_strokes_out_forward", [&] {
+    const scalar_t *r = render.data_ptr<scalar_t>(), *p = photo.data_ptr<scalar_t>();
+    const scalar_t *ro = r_open[0].data_ptr<scalar_t>(), *po = p_open[0].data_ptr<scalar_t>();
+    scalar_t *r_dst = r_out.data_ptr<scalar_t>(), *p_dst = p_out.data_ptr<scalar_t>();
+    bool* s = stroke.data_ptr<bool>();
+    const scalar_t m = scalar_t(min_excess);
+    metegs::parallel_for(0, pixels, 4096, [&](int64_t begin, int64_t end) {
+      for (int64_t i = begin; i < end; ++i) {
+        scalar_t excess_r = 0, excess_p = 0;  // summed in channel order, then / C: as mean(dim=-1)
+        for (int64_t c = 0; c < C; ++c) excess_r += r[i * C + c] - ro[i * C + c], excess_p += p[i * C + c] - po[i * C + c];
+        const bool taken = excess_p / scalar_t(C) > m || excess_r / scalar_t(C) > m;
+        s[i] = taken;
+        for (int64_t c = 0; c < C; ++c) {
+          r_dst[i * C + c] = taken ? ro[i * C + c] : r[i * C + c];
+          p_dst[i * C + c] = taken ? po[i * C + c] : p[i * C + c];
+        }
+      }
+    });
+  });
+  return {r_out, p_out, r_open[1], stroke};
+}
+
+at::Tensor strokes_out_backward(at::Tensor index, at::Tensor stroke, at::Tensor g_out) {
+  TORCH_CHECK(index.sizes() == g_out.sizes() && index.scalar_type() == at::kInt,
+              "strokes_out_backward: index (int32) and g_out must have one shape");
+  TORCH_CHECK(stroke.numel() * g_out.size(-1) == g_out.numel() && stroke.scalar_type() == at::kBool,
+              "strokes_out_backward: stroke must be the bool mask of g_out's pixels");
+  index = index.contiguous(), stroke = stroke.contiguous(), g_out = g_out.contiguous();
+  const int64_t C = g_out.size(-1), pixels = stroke.numel();
+  auto g_x = at::empty_like(g_out);
+  AT_DISPATCH_FLOATING_TYPES(g_out.scalar_type(), "metegs_strokes_out_backward", [&] {
+    const scalar_t* g = g_out.data_ptr<scalar_t>();
+    const int32_t* idx = index.data_ptr<int32_t>();
+    const bool* s = stroke.data_ptr<bool>();
+    scalar_t* gx = g_x.data_ptr<scalar_t>();
+    for (int64_t i = 0; i < pixels; ++i)  // the render as it is where no stroke was taken
+      for (int64_t c = 0; c < C; ++c) gx[i * C + c] = s[i] ? scalar_t(0) : g[i * C + c];
+    for (int64_t i = 0; i < pixels; ++i)  // serial: opened pixels share sources
+      if (s[i])
+        for (int64_t c = 0; c < C; ++c) gx[idx[i * C + c]] += g[i * C + c];
   });
   return g_x;
 }
