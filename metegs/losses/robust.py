@@ -61,11 +61,11 @@ class RobustMaskConfig:
     ssim_lambda: Annotated[float | None, FRACTION] = None
     """Weight of the D-SSIM term while the L1 fits the low quantile (None: the loss's own): SSIM asks for the
     photos' local contrast, streaks included, which a fit held under the photos makes by darkening between them."""
-    stroke_px: Annotated[float, NON_NEGATIVE] = 0.0
+    stroke_px: Annotated[float, NON_NEGATIVE] = 3.0
     """While the L1 fits the low quantile, D-SSIM compares render and photo without the bright strokes narrower
-    than this (`without_bright_strokes`), in px at a longer image side of 480 px and scaled with it (0: off; 3 took
-    the fox's dark strokes but makes its steps 1.6-1.75× as long on CPU): the photo's streaks are not asked of the
-    render, which it would fake by darkening between them."""
+    than this (`without_bright_strokes`), in px at a longer image side of 480 px and scaled with it (0: off; under
+    2 px after scaling, nothing is taken): the photo's streaks are not asked of the render, which it would fake by
+    darkening between them."""
 
 
 @torch.no_grad()

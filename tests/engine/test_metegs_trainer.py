@@ -501,8 +501,8 @@ def test_the_low_quantile_fit_takes_bright_strokes_out_of_ssim(tmp_path):
     assert "without the bright strokes under 3 px wide" in taken.decisions["low-quantile fit"]
     scaled, *_ = run("scaled", stroke_px=3.0)  # 3 px at 480 px: under a pixel at 64
     assert scaled.stroke_width == 1 and "under 2 px wide at 64 px" in scaled.decisions["low-quantile fit"]
-    assert RobustMaskConfig().stroke_px == 0  # off by default: it makes the steps 1.6-1.75x as long on CPU
-    plain, rgb0, _, loss0 = run("plain")
+    assert RobustMaskConfig().stroke_px == 3  # on by default, 3 px at 480 px
+    plain, rgb0, _, loss0 = run("plain", stroke_px=0.0)
     assert "strokes" not in plain.decisions["low-quantile fit"] and torch.equal(rgb, rgb0)
     pair = without_bright_strokes(rgb, target, 3, taken.config.robust.min_excess)
     assert not torch.equal(pair[1], target)  # the tiny scene's rain has thin bright strokes
