@@ -23,3 +23,19 @@ def random_scene(
 
 def camera(width: int = 40, height: int = 30, f: float = 35.0) -> Cameras:
     return Cameras.create(torch.eye(4)[None], f, f * 1.05, width / 2 + 0.3, height / 2 - 0.2, width, height)
+
+
+def autograd_graph_holds(t: torch.Tensor, *functions: type) -> bool:
+    """Whether ``t``'s autograd graph holds a node of one of the custom autograd ``functions`` (their backward
+    nodes are named after them)."""
+    names = tuple(f.__name__ for f in functions)
+    todo, seen = [t.grad_fn], set()
+    while todo:
+        fn = todo.pop()
+        if fn is None or fn in seen:
+            continue
+        seen.add(fn)
+        if type(fn).__name__.startswith(names):
+            return True
+        todo += [f for f, _ in fn.next_functions]
+    return False

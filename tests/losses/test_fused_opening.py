@@ -9,6 +9,7 @@ from metegs.losses.photometric import open_bright, pooled_opening
 from metegs.losses.robust import pooled_strokes_out, without_bright_strokes
 from metegs.render import cpu_backend
 from metegs.render.cpu_backend import CpuExtensionError
+from metegs.testing import autograd_graph_holds
 
 try:
     cpu_backend.load_extension()
@@ -54,16 +55,7 @@ def test_a_photo_without_gradient_is_opened_alike_without_the_source_index():
 
 def made_by_the_kernel(t: torch.Tensor) -> bool:
     """Whether ``t``'s autograd graph holds `FusedOpening` or `FusedStrokesOut`."""
-    todo, seen = [t.grad_fn], set()
-    while todo:
-        fn = todo.pop()
-        if fn is None or fn in seen:
-            continue
-        seen.add(fn)
-        if type(fn).__name__.startswith((FusedOpening.__name__, FusedStrokesOut.__name__)):
-            return True
-        todo += [f for f, _ in fn.next_functions]
-    return False
+    return autograd_graph_holds(t, FusedOpening, FusedStrokesOut)
 
 
 def test_open_bright_runs_the_kernel_on_cpu_and_the_reference_without_it(monkeypatch):

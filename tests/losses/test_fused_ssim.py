@@ -9,6 +9,7 @@ from metegs.losses.fused_ssim import FusedSSIMMap, fused_ssim_available, trainin
 from metegs.losses.photometric import PhotometricLoss
 from metegs.render import cpu_backend
 from metegs.render.cpu_backend import CpuExtensionError
+from metegs.testing import autograd_graph_holds
 
 try:
     cpu_backend.load_extension()
@@ -27,16 +28,7 @@ def images(shape, dtype=torch.float32, seed=0):
 
 def made_by_the_kernel(t: torch.Tensor) -> bool:
     """Whether ``t``'s autograd graph holds `FusedSSIMMap`."""
-    todo, seen = [t.grad_fn], set()
-    while todo:
-        fn = todo.pop()
-        if fn is None or fn in seen:
-            continue
-        seen.add(fn)
-        if "FusedSSIMMap" in type(fn).__name__:
-            return True
-        todo += [f for f, _ in fn.next_functions]
-    return False
+    return autograd_graph_holds(t, FusedSSIMMap)
 
 
 @pytest.mark.parametrize("shape", [(37, 53, 3), (2, 24, 31, 3), (5, 7, 3), (40, 60, 1)])
