@@ -1,9 +1,11 @@
-"""The grey-scale opening of `metegs.losses.photometric.open_bright` as one compiled op with its own backward (CPU).
+"""The grey-scale opening of `metegs.losses.photometric.open_bright`, and `metegs.losses.robust.without_bright_strokes`
+built on it, as compiled ops with their own backward (CPU).
 
-Same values as the reference (two stride-1 ``max_pool2d``, the erosion's then the dilation's), in four separable
-passes that keep the input pixel each value came from (``render/csrc/opening.cpp``); the backward scatters the
-gradient onto those pixels, where autograd through the pools ran as long as the forward several times over.
-Elsewhere (CUDA, integers, no compiled extension) the reference runs.
+Same values as the references (`pooled_opening`: two stride-1 ``max_pool2d``, the erosion's then the dilation's;
+`pooled_strokes_out`), in four separable passes that keep the input pixel each value came from
+(``render/csrc/opening.cpp``); the backward scatters the gradient onto those pixels, where autograd through the
+pools ran as long as the forward several times over. Elsewhere (CUDA, integers, no compiled extension) the
+references run.
 """
 
 from __future__ import annotations
