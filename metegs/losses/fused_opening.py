@@ -1,11 +1,10 @@
-"""The grey-scale opening of `metegs.losses.photometric.open_bright`, and `metegs.losses.robust.without_bright_strokes`
-built on it, as compiled ops with their own backward (CPU).
+"""`metegs.losses.robust.without_bright_strokes` as one compiled op with its own backward (CPU).
 
-Same values as the references (`pooled_opening`: two stride-1 ``max_pool2d``, the erosion's then the dilation's;
-`pooled_strokes_out`), in four separable passes that keep the input pixel each value came from
-(``render/csrc/opening.cpp``); the backward scatters the gradient onto those pixels, where autograd through the
-pools ran as long as the forward several times over. Elsewhere (CUDA, integers, no compiled extension) the
-references run.
+Same values as its torch reference, `pooled_strokes_out` (the openings of `metegs.losses.photometric.open_bright`:
+two stride-1 ``max_pool2d``, the erosion's then the dilation's, and the masks), in four separable passes per
+opening that keep the input pixel each value came from (``render/csrc/opening.cpp``); the backward scatters the
+gradient onto those pixels, where autograd through the pools ran as long as the forward several times over.
+Elsewhere (CUDA, integers, no compiled extension, a photo that needs a gradient) the reference runs.
 """
 
 from __future__ import annotations
@@ -14,39 +13,14 @@ import torch
 from torch.autograd.function import once_differentiable
 
 
-class FusedOpening(torch.autograd.Function):
-    """Opening [B, H, W, C] of ``image`` ([B, H, W, C]) by a ``k`` × ``k`` square (``k`` odd)."""
-
-    @staticmethod
-    def forward(ctx, image, k):
-        from metegs.render.cpu_backend import load_extension
-
-        opened, index = load_extension().opening_forward(image, k, with_index=image.requires_grad)
-        ctx.save_for_backward(index)
-        return opened
-
-    @staticmethod
-    @once_differentiable
-    def backward(ctx, g_out):
-        from metegs.render.cpu_backend import load_extension
-
-        (index,) = ctx.saved_tensors
-        return load_extension().opening_backward(index, g_out), None
-
-
 def fused_opening_available(image: torch.Tensor) -> bool:
-    """Whether `open_bright` runs the compiled op on ``image``: a floating-point CPU tensor, and the ``cpu``
-    backend's extension loaded or buildable."""
+    """Whether `without_bright_strokes` can run the compiled op on ``image``: a floating-point CPU tensor, and the
+    ``cpu`` backend's extension loaded or buildable."""
     if image.device.type != "cpu" or not image.is_floating_point():
         return False
     from metegs.render.cpu_backend import EXTENSION
 
     return EXTENSION.available()
-
-
-def fused_opening(image: torch.Tensor, k: int) -> torch.Tensor:
-    """[H, W, C] -> [H, W, C]: the compiled opening of ``image`` by an odd ``k`` × ``k`` square."""
-    return FusedOpening.apply(image[None].contiguous(), k)[0]
 
 
 class FusedStrokesOut(torch.autograd.Function):

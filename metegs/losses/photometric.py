@@ -13,7 +13,6 @@ import torch
 import torch.nn.functional as F
 
 from metegs.config import InstantiateConfig
-from metegs.losses.fused_opening import fused_opening, fused_opening_available
 from metegs.losses.fused_ssim import training_ssim_map
 from metegs.validate import FRACTION
 
@@ -92,12 +91,6 @@ def open_bright(image: torch.Tensor, width: int) -> torch.Tensor:
     if width <= 0:
         return image
     k = width | 1
-    return fused_opening(image, k) if fused_opening_available(image) else pooled_opening(image, k)
-
-
-def pooled_opening(image: torch.Tensor, k: int) -> torch.Tensor:
-    """[H, W, C] -> [H, W, C]: `open_bright`'s opening by an odd ``k`` × ``k`` square as two stride-1 ``max_pool2d``
-    (the reference of the compiled `fused_opening`)."""
     x = image.permute(2, 0, 1)[None]
     eroded = -F.max_pool2d(-x, k, stride=1, padding=k // 2)
     return F.max_pool2d(eroded, k, stride=1, padding=k // 2)[0].permute(1, 2, 0)

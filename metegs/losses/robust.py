@@ -28,7 +28,7 @@ import torch
 import torch.nn.functional as F
 
 from metegs.losses.fused_opening import fused_opening_available, fused_strokes_out
-from metegs.losses.photometric import pooled_opening
+from metegs.losses.photometric import open_bright
 from metegs.validate import FRACTION, NON_NEGATIVE, Range
 
 MAD_TO_SIGMA = 1.4826
@@ -90,7 +90,9 @@ def without_bright_strokes(
     elsewhere. A streak in the photo is then not asked of the render, nor a modelled streak in the render of the
     photo, and a stroke both hold (a bright edge) is compared opened on both sides. The render's opening carries
     its gradient (to the pixels the erosion and dilation pick): without it the fox's blind run lost 2 dB."""
-    if width > 1 and not photo.requires_grad and fused_opening_available(render):
+    if width <= 1:
+        return render, photo
+    if not photo.requires_grad and fused_opening_available(render):
         return fused_strokes_out(render, photo, width | 1, min_excess)
     return pooled_strokes_out(render, photo, width, min_excess)
 
@@ -99,9 +101,7 @@ def pooled_strokes_out(
     render: torch.Tensor, photo: torch.Tensor, width: int, min_excess: float
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """`without_bright_strokes` in torch ops (the reference of the compiled `fused_strokes_out`)."""
-    if width <= 1:
-        return render, photo
-    render_opened, photo_opened = pooled_opening(render, width | 1), pooled_opening(photo, width | 1)
+    render_opened, photo_opened = open_bright(render, width), open_bright(photo, width)
     with torch.no_grad():
         stroke = (photo - photo_opened).mean(dim=-1) > min_excess
         stroke |= (render - render_opened).mean(dim=-1) > min_excess

@@ -5,8 +5,8 @@ Three ops, each the equivalent of a torch reference stage (and tested against it
 `gaussian_colors`), ``csrc/binning.cpp`` (depth-sorted tile lists with an exact ellipse-tile test;
 reference: `bin_gaussians`) and ``csrc/composite.cpp`` (tile compositing, `CompositeTiles`; reference:
 `torch_backend.composite_tiles`); beside them ``csrc/ssim.cpp``, the training loss's SSIM map with its backward
-(`metegs.losses.fused_ssim`), and ``csrc/opening.cpp``, the grey-scale opening of `metegs.losses.photometric.open_bright`
-with its backward (`metegs.losses.fused_opening`). The extension is compiled with `torch.utils.cpp_extension` on first use (about 50 s on 2 cores)
+(`metegs.losses.fused_ssim`), and ``csrc/opening.cpp``, the bright strokes of `metegs.losses.robust.without_bright_strokes`
+taken out with its backward (`metegs.losses.fused_opening`). The extension is compiled with `torch.utils.cpp_extension` on first use (about 50 s on 2 cores)
 and cached in ``~/.cache/metegs/torch_extensions/<torch version>/<cpu tag>/`` (``$XDG_CACHE_HOME``
 is honoured, ``METEGS_EXTENSIONS_DIR`` overrides the whole path); later processes only load it. x86 intrinsics are
 used only where the compiler targets them, and never with ``METEGS_CPU_PORTABLE=1`` (`machine_cflags`).

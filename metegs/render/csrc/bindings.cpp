@@ -28,8 +28,6 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         py::arg("x"), py::arg("y"), py::arg("window"), py::arg("partials"), py::arg("g_map"));
   m.def("opening_forward", &metegs_cpu::opening_forward, "grey-scale opening by a square and its source pixels (CPU)",
         nogil, py::arg("x"), py::arg("k"), py::arg("with_index") = true);
-  m.def("opening_backward", &metegs_cpu::opening_backward, "backward of opening_forward (CPU)", nogil,
-        py::arg("index"), py::arg("g_out"));
   m.def("strokes_out_forward", &metegs_cpu::strokes_out_forward,
         "render and photo with their thin bright strokes opened (CPU)", nogil, py::arg("render"), py::arg("photo"),
         py::arg("k"), py::arg("min_excess"), py::arg("with_index") = true);

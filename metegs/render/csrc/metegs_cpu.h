@@ -285,8 +285,6 @@ at::Tensor ssim_backward(at::Tensor x, at::Tensor y, at::Tensor window, at::Tens
 // borders -> {opened [B, H, W, C], index [B, H, W, C] int32: the flat index in x each value was picked from, or an
 // empty tensor unless with_index}.
 std::vector<at::Tensor> opening_forward(at::Tensor x, int64_t k, bool with_index);
-// -> gradient of x given the opening's gradient g_out [B, H, W, C] and opening_forward's index.
-at::Tensor opening_backward(at::Tensor index, at::Tensor g_out);
 // opening.cpp: render and photo [B, H, W, C] with the pixels where either holds a bright stroke narrower than k
 // (the mean over channels of image - opening > min_excess) replaced by both openings -> {render out, photo out,
 // the render's opening index (empty unless with_index), stroke [B, H, W] bool}.

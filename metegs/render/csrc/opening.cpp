@@ -1,11 +1,11 @@
 // opening.cpp: grey-scale opening of images (each channel) by a k x k square, the erosion's minimum then the
-// dilation's maximum over windows clipped at the borders (reference: metegs.losses.photometric.pooled_opening, two
+// dilation's maximum over windows clipped at the borders (reference: metegs.losses.photometric.open_bright, two
 // stride-1 max_pool2d), with the input pixel each output was picked from; and a render and a photo with their
 // thin bright strokes taken out (reference: metegs.losses.robust.without_bright_strokes' torch path).
 //
 // The square is separable: a row pass then a column pass each way, k compares per pixel and pass where the pooled
 // reference visits k^2. Each pass carries the flat index of the input pixel its value came from, so the backward
-// is one scatter of the output's gradient onto those pixels. Ties go to the first pixel in row-major order of the
+// is one scatter of the output's gradient onto those pixels (strokes_out_backward). Ties go to the first pixel in row-major order of the
 // window, as max_pool2d's do: the row pass keeps the leftmost, the column pass the topmost.
 #include "metegs_cpu.h"
 
@@ -102,21 +102,6 @@ std::vector<at::Tensor> opening_forward(at::Tensor x, int64_t k, bool with_index
       open<scalar_t, false>(px, o, t, nullptr, nullptr, B, H, W, C, r);
   });
   return {out, index};
-}
-
-at::Tensor opening_backward(at::Tensor index, at::Tensor g_out) {
-  TORCH_CHECK(index.sizes() == g_out.sizes() && index.scalar_type() == at::kInt,
-              "opening_backward: index (int32) and g_out must have one shape");
-  index = index.contiguous(), g_out = g_out.contiguous();
-  auto g_x = at::zeros_like(g_out);
-  AT_DISPATCH_FLOATING_TYPES(g_out.scalar_type(), "metegs_opening_backward", [&] {
-    const scalar_t* g = g_out.data_ptr<scalar_t>();
-    const int32_t* idx = index.data_ptr<int32_t>();
-    scalar_t* gx = g_x.data_ptr<scalar_t>();
-    const int64_t N = g_out.numel();
-    for (int64_t i = 0; i < N; ++i) gx[idx[i]] += g[i];  // serial: outputs share sources
-  });
-  return g_x;
 }
 
 std::vector<at::Tensor> strokes_out_forward(at::Tensor render, at::Tensor photo, int64_t k, double min_excess,
