@@ -24,7 +24,7 @@ from metegs.gaussians.model import GaussianModel
 from metegs.gaussians.sh import rgb_to_sh
 from metegs.losses.dark_channel import dark_channel_loss
 from metegs.losses.photometric import box_detail
-from metegs.losses.robust import inlier_weights, stroke_width_px, without_bright_strokes
+from metegs.losses.robust import LOW_QUANTILE, VEILED_QUANTILE, inlier_weights, stroke_width_px, without_bright_strokes
 from metegs.meteo.physics import LN20
 from metegs.models.gtn import may_be_visible
 from metegs.render import RenderSettings
@@ -156,6 +156,8 @@ class MeteGSTrainer(Trainer):
         """Step from which the weather branch's photometric loss is trimmed to inliers (None: never)."""
         self.stroke_width = 1
         """Width of the square that takes bright strokes out of D-SSIM's pair in the low-quantile fit (1: none)."""
+        self.quantile = 0.5
+        """Quantile of a pixel's photos that the trimmed L1 fits (0.5: the median; `RobustMaskConfig.quantile`)."""
         if not r.enabled:
             self.decide("robust mask", "off")
             return
@@ -171,13 +173,20 @@ class MeteGSTrainer(Trainer):
             f"on from step {self.robust_from}: pixels {'brighter' if r.brighter_only else 'further'} than "
             f"{r.k_sigma:g} robust sigmas of their view's residuals (grown by {r.dilate_px} px) are left out",
         )
-        if r.quantile == 0.5:
+        veiled = r.quantile is None and bool(self.dehazing)
+        self.quantile = r.quantile if r.quantile is not None else VEILED_QUANTILE if veiled else LOW_QUANTILE
+        if self.quantile == 0.5:
             why = "off: --robust.quantile 0.5 (the L1 fits the median of a pixel's photos)"
         else:
             why = (
-                f"on: the trimmed L1 fits the {r.quantile:.0%} quantile of a pixel's photos, not their median: "
+                f"on: the trimmed L1 fits the {self.quantile:.0%} quantile of a pixel's photos, not their median: "
                 f"{rain_phrase(rain)} brightens nearly every pixel a little, and rain only adds light"
             )
+            if veiled:
+                why += (
+                    f" ({self.quantile:.0%}, not {LOW_QUANTILE:.0%}: the dark-channel prior holds the medium, whose "
+                    "veil takes the even part of that light, and a lower fit would darken the scene a second time)"
+                )
             if r.ssim_lambda is not None:
                 why += f"; D-SSIM at weight {r.ssim_lambda:g} (--robust.ssim-lambda)"
             longer = max(max(size) for size in self.dataset.sizes)
@@ -592,7 +601,7 @@ class MeteGSTrainer(Trainer):
         weights, quantile, ssim_lambda, ssim_images = None, 0.5, None, None
         if self.robust_from is not None and self.step >= self.robust_from:
             weights = inlier_weights(target - render.rgb.detach(), c.robust)
-            quantile = c.robust.quantile
+            quantile = self.quantile
             if quantile < 0.5:
                 ssim_lambda = c.robust.ssim_lambda  # None: the loss's own
                 if self.stroke_width > 1:

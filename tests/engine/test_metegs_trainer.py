@@ -428,12 +428,30 @@ def test_light_rain_switches_off_the_gtn_and_the_robust_mask_and_blind_training_
 
 def test_heavy_rain_fits_a_low_quantile_of_the_photos(tmp_path):
     """Rain only adds light: the trimmed L1 fits a low quantile of a pixel's photos in heavy rain, the median where
-    the user asks for it, and nothing changes in light rain (no mask)."""
+    the user asks for it, a milder one where the dark-channel prior holds the medium, and nothing changes in light
+    rain (no mask)."""
     from metegs.losses.robust import RobustMaskConfig
 
     heavy = tiny_metegs(tmp_path / "heavy", max_steps=1).setup()  # 20 mm/h and 400 m
-    assert heavy.robust_from is not None and RobustMaskConfig().quantile < 0.5
+    assert heavy.robust_from is not None and heavy.quantile == 0.1
     assert heavy.decisions["low-quantile fit"].startswith("on: the trimmed L1 fits the 10% quantile")
+    # blind from random points the dark-channel prior holds the medium, whose veil takes some of the rain's light
+    dark = tiny_metegs(
+        tmp_path / "dark",
+        max_steps=1,
+        clean_supervision=False,
+        model=replace(heavy.config.model, random_init=True),
+    ).setup()
+    assert dark.dehazing and dark.robust_from is not None and dark.quantile == 0.25
+    assert "25%, not 10%: the dark-channel prior holds the medium" in dark.decisions["low-quantile fit"]
+    forced = tiny_metegs(
+        tmp_path / "forced",
+        max_steps=1,
+        clean_supervision=False,
+        model=replace(heavy.config.model, random_init=True),
+        robust=RobustMaskConfig(quantile=0.1),
+    ).setup()
+    assert forced.dehazing and forced.quantile == 0.1
     median = tiny_metegs(tmp_path / "median", robust=RobustMaskConfig(quantile=0.5), max_steps=1).setup()
     assert median.robust_from is not None and median.decisions["low-quantile fit"].startswith("off: --robust.quantile")
     light = tiny_metegs(tmp_path / "light", conditions=ConditionsConfig(precip_mm_h=1.5), max_steps=1).setup()
