@@ -24,7 +24,14 @@ from metegs.gaussians.model import GaussianModel
 from metegs.gaussians.sh import rgb_to_sh
 from metegs.losses.dark_channel import dark_channel_loss
 from metegs.losses.photometric import box_detail
-from metegs.losses.robust import LOW_QUANTILE, VEILED_QUANTILE, inlier_weights, stroke_width_px, without_bright_strokes
+from metegs.losses.robust import (
+    LOW_QUANTILE,
+    VEILED_QUANTILE,
+    inlier_weights,
+    stroke_energy,
+    stroke_width_px,
+    without_bright_strokes,
+)
 from metegs.meteo.physics import LN20
 from metegs.models.gtn import may_be_visible
 from metegs.render import RenderSettings
@@ -168,10 +175,25 @@ class MeteGSTrainer(Trainer):
                 "the scene's hardest pixels",
             )
             return
+        seen = ""
+        if r.min_stroke_energy > 0:
+            energy = self._photos_stroke_energy()
+            strokes = f"their thin bright strokes of one orientation hold {energy:.4f} of energy"
+            if energy < r.min_stroke_energy:
+                self.robust_from = None
+                self.decide(
+                    "robust mask",
+                    f"off: the photos do not show the streaks of {rain_phrase(rain)} ({strokes}, under "
+                    f"{r.min_stroke_energy:g}): the weather models take its veil and faint streaks, and trimming the "
+                    "photos' brightest pixels would dim the scene (--robust.min-stroke-energy 0: the record alone "
+                    "decides)",
+                )
+                return
+            seen = f", as the photos show streaks ({strokes})"
         self.decide(
             "robust mask",
             f"on from step {self.robust_from}: pixels {'brighter' if r.brighter_only else 'further'} than "
-            f"{r.k_sigma:g} robust sigmas of their view's residuals (grown by {r.dilate_px} px) are left out",
+            f"{r.k_sigma:g} robust sigmas of their view's residuals (grown by {r.dilate_px} px) are left out{seen}",
         )
         veiled = r.quantile is None and bool(self.dehazing)
         self.quantile = r.quantile if r.quantile is not None else VEILED_QUANTILE if veiled else LOW_QUANTILE
@@ -200,6 +222,12 @@ class MeteGSTrainer(Trainer):
             elif r.stroke_px > 0:
                 why += f"; streaks are under 2 px wide at {longer} px, so D-SSIM sees render and photo as they are"
         self.decide("low-quantile fit", why)
+
+    def _photos_stroke_energy(self, most: int = 16) -> float:
+        """Median `stroke_energy` of up to ``most`` training photos, evenly spread over the training views."""
+        views = self.dataset.train_indices
+        picked = views[:: max(1, -(-len(views) // most))]
+        return float(np.median([stroke_energy(self.dataset.images[i]) for i in picked]))
 
     def _build_weather(self) -> list[WeatherModel]:
         from metegs.weather.conditions import describe, scene_metres_per_unit

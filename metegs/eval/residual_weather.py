@@ -41,6 +41,14 @@ def line_filters(sigma_across: float = 1.0, sigma_along: float = 3.0, size: int 
     return torch.stack(kernels)[:, None].float()
 
 
+def line_responses(image: torch.Tensor) -> torch.Tensor:
+    """[1, 1, H, W] -> [ANGLES, H, W]: the absolute response of each oriented line filter (`line_filters`, the image
+    reflected at its borders), in ``image``'s dtype."""
+    filters = line_filters().to(image.device, image.dtype)
+    pad = [filters.shape[-1] // 2] * 4
+    return F.conv2d(F.pad(image, pad, mode="reflect"), filters).abs()[0]
+
+
 def _luma(image: torch.Tensor) -> torch.Tensor:
     """[H, W, 3] -> [1, 1, H, W] luminance."""
     return (image.float() * torch.tensor(LUMA, device=image.device)).sum(-1)[None, None]
@@ -52,13 +60,10 @@ def streak_energy(pred: torch.Tensor, ref: torch.Tensor) -> float:
     share a direction (rain falls one way in a view) and that the reference does not have. Noise answers every
     orientation alike, so it scores near 0."""
     y = _luma(ref).double()
-    d = _luma(pred).double() - y
-    filters = line_filters().to(d.device, torch.float64)
-    pad = [filters.shape[-1] // 2] * 4
-    response = F.conv2d(F.pad(d, pad, mode="reflect"), filters).abs()[0]
+    response = line_responses(_luma(pred).double() - y)
     # where the reference has edges, a slightly blurred or shifted render leaves oriented residuals too: count
     # the pixels whose neighbourhood is smooth in the reference
-    edges = F.conv2d(F.pad(y, pad, mode="reflect"), filters).abs()[0].amax(dim=0)
+    edges = line_responses(y).amax(dim=0)
     smooth = torch.exp(-((edges / SMOOTH_LEVEL) ** 2))
     per_angle = (response * smooth).sum(dim=(1, 2)) / smooth.sum().clamp_min(1.0)
     return float(per_angle.max() - per_angle.mean())

@@ -3,6 +3,7 @@
 import json
 from dataclasses import replace
 
+import numpy as np
 import pytest
 import torch
 
@@ -31,9 +32,17 @@ def tiny_metegs(tmp_path, **kw) -> MeteGSConfig:
         densify=ADCConfig(max_gaussians=1500),
         conditions=ConditionsConfig(precip_mm_h=20.0, visibility_m=400.0, wind_speed_m_s=4.0, wind_dir_deg=90.0),
         compare_baseline=False,
+        robust=record_robust(),
     )
     options.update(kw)
     return MeteGSConfig(**options)
+
+
+def record_robust(**kw):
+    """The robust mask as the record's rain alone decides it: the tiny scene's faint streaks would keep it off."""
+    from metegs.losses.robust import RobustMaskConfig
+
+    return RobustMaskConfig(min_stroke_energy=0.0, **kw)
 
 
 @pytest.fixture(scope="module")
@@ -430,7 +439,6 @@ def test_heavy_rain_fits_a_low_quantile_of_the_photos(tmp_path):
     """Rain only adds light: the trimmed L1 fits a low quantile of a pixel's photos in heavy rain, the median where
     the user asks for it, a milder one where the dark-channel prior holds the medium, and nothing changes in light
     rain (no mask)."""
-    from metegs.losses.robust import RobustMaskConfig
 
     heavy = tiny_metegs(tmp_path / "heavy", max_steps=1).setup()  # 20 mm/h and 400 m
     assert heavy.robust_from is not None and heavy.quantile == 0.1
@@ -449,10 +457,10 @@ def test_heavy_rain_fits_a_low_quantile_of_the_photos(tmp_path):
         max_steps=1,
         clean_supervision=False,
         model=replace(heavy.config.model, random_init=True),
-        robust=RobustMaskConfig(quantile=0.1),
+        robust=record_robust(quantile=0.1),
     ).setup()
     assert forced.dehazing and forced.quantile == 0.1
-    median = tiny_metegs(tmp_path / "median", robust=RobustMaskConfig(quantile=0.5), max_steps=1).setup()
+    median = tiny_metegs(tmp_path / "median", robust=record_robust(quantile=0.5), max_steps=1).setup()
     assert median.robust_from is not None and median.decisions["low-quantile fit"].startswith("off: --robust.quantile")
     light = tiny_metegs(tmp_path / "light", conditions=ConditionsConfig(precip_mm_h=1.5), max_steps=1).setup()
     assert light.robust_from is None and "low-quantile fit" not in light.decisions
@@ -466,6 +474,31 @@ def test_heavy_rain_fits_a_low_quantile_of_the_photos(tmp_path):
     assert losses[0] != pytest.approx(losses[1], rel=1e-3)
 
 
+def test_heavy_rain_the_photos_do_not_show_is_not_trimmed(tmp_path):
+    """The record's heavy rain turns the robust mask and the low-quantile fit on only where the training photos show
+    streaks (`stroke_energy` at least `RobustMaskConfig.min_stroke_energy`), and the decision says which: the tiny
+    scene under metegs's own 20 mm/h (faint streaks, which its rain model explains) keeps every pixel, the same
+    scene under the independent family's streak layers trims them."""
+    from metegs.losses.robust import VISIBLE_STROKE_ENERGY, RobustMaskConfig, stroke_energy
+
+    scene = DatasetConfig(synthetic=SyntheticSceneConfig(width=160, height=120, num_views=12, num_points=600))
+    options = dict(max_steps=1, robust=RobustMaskConfig(), dataset=scene, degrade="rain")
+    faint = tiny_metegs(tmp_path / "faint", **options).setup()
+    energy = faint._photos_stroke_energy()
+    views = faint.dataset.train_indices
+    assert energy == pytest.approx(float(np.median([stroke_energy(faint.dataset.images[i]) for i in views])))
+    assert energy < VISIBLE_STROKE_ENERGY
+    assert faint.robust_from is None and faint.quantile == 0.5 and "low-quantile fit" not in faint.decisions
+    assert faint.decisions["robust mask"].startswith("off: the photos do not show the streaks of heavy rain")
+    assert f"{energy:.4f} of energy" in faint.decisions["robust mask"]
+    shown = tiny_metegs(tmp_path / "shown", degrade_family="independent", **options).setup()
+    assert shown._photos_stroke_energy() > VISIBLE_STROKE_ENERGY
+    assert shown.robust_from is not None and "as the photos show streaks" in shown.decisions["robust mask"]
+    assert shown.decisions["low-quantile fit"].startswith("on")
+    record = tiny_metegs(tmp_path / "record", **{**options, "robust": record_robust()}).setup()  # the record decides
+    assert record.robust_from is not None and "photos show" not in record.decisions["robust mask"]
+
+
 def test_the_ssim_weight_of_the_low_quantile_fit_is_its_own(tmp_path):
     """D-SSIM asks for the photos' streaky local contrast, which a fit held under the photos makes by darkening the
     gaps between the streaks (dark strokes in the fox's clean render): while the L1 fits the low quantile, the
@@ -474,7 +507,7 @@ def test_the_ssim_weight_of_the_low_quantile_fit_is_its_own(tmp_path):
 
     def run(name: str, **robust) -> tuple[float, str]:
         """(the weather branch's loss once the low-quantile fit is on, the decision `low-quantile fit`)."""
-        trainer = tiny_metegs(tmp_path / name, robust=RobustMaskConfig(**robust), max_steps=1).setup()
+        trainer = tiny_metegs(tmp_path / name, robust=record_robust(**robust), max_steps=1).setup()
         trainer.step = trainer.robust_from
         index, background = trainer.dataset.train_indices[0], trainer.background(training=True)
         with torch.no_grad():
@@ -504,7 +537,7 @@ def test_the_low_quantile_fit_takes_bright_strokes_out_of_ssim(tmp_path):
     from metegs.losses.robust import STROKE_REFERENCE_SIDE_PX, RobustMaskConfig, inlier_weights, without_bright_strokes
 
     def run(name: str, **robust):
-        trainer = tiny_metegs(tmp_path / name, robust=RobustMaskConfig(**robust), max_steps=1).setup()
+        trainer = tiny_metegs(tmp_path / name, robust=record_robust(**robust), max_steps=1).setup()
         trainer.step = trainer.robust_from
         index, background = trainer.dataset.train_indices[0], trainer.background(training=True)
         with torch.no_grad():

@@ -12,6 +12,7 @@ import pytest
 from metegs.data.config import DatasetConfig, SyntheticSceneConfig
 from metegs.densify.adc import ADCConfig
 from metegs.engine.compare import train_baseline
+from metegs.losses.robust import RobustMaskConfig
 from metegs.weather.conditions import ConditionsConfig
 
 from .test_metegs_trainer import tiny_metegs
@@ -31,8 +32,10 @@ def test_blind_metegs_leaves_less_weather_than_3dgs_on_weather_it_did_not_make(t
         degrade_family="independent",
         conditions=ConditionsConfig(precip_mm_h=22.0, visibility_m=300.0),
         clean_supervision=False,
+        robust=RobustMaskConfig(),  # as a user gets it: on, as the photos show the streaks
     )
     trainer = config.setup()
+    assert trainer.robust_from is not None and "the photos show streaks" in trainer.decisions["robust mask"]
     metrics = trainer.train()
     plain = train_baseline(trainer)  # 3dgs on the same degraded photos, same schedule and seed
     assert metrics["reference"] == plain["reference"] == "clean" and not trainer.use_clean
