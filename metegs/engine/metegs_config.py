@@ -15,12 +15,13 @@ from metegs.losses.dark_channel import DarkChannelPriorConfig
 from metegs.losses.perceptual import PerceptualLossConfig
 from metegs.losses.robust import RobustMaskConfig
 from metegs.models.gtn import GTNConfig
-from metegs.validate import NON_NEGATIVE
+from metegs.validate import NON_NEGATIVE, Range
 from metegs.weather.base import WeatherModelConfig
 from metegs.weather.fog_analytic import FogAnalyticConfig
 from metegs.weather.fog_gaussians import FogGaussiansConfig
 from metegs.weather.learnable import LearnableWeatherConfig
 from metegs.weather.lens_droplets import LensDropletsConfig
+from metegs.weather.medium import VISIBLE_CONTRAST_LOSS
 from metegs.weather.rain_streaks import RainStreaksConfig
 
 C = TypeVar("C")
@@ -109,6 +110,9 @@ class MeteGSConfig(TrainConfig):
     """Options of `lens-droplets` (when listed in `weather`)."""
     robust: RobustMaskConfig = field(default_factory=RobustMaskConfig)
     """Trimmed photometric loss of the weather branch: pixels no model explains in a view are left out of it."""
+    min_photo_veil: Annotated[float, Range(0.0, 1.0)] = VISIBLE_CONTRAST_LOSS
+    """A medium the record calls for (fog, rain veil) is on only where the training photos' darkest patches show at
+    least this share of veil (`photo_veil`: clear photos 0.00-0.01; 0: the record alone decides)."""
     dark_channel: DarkChannelPriorConfig = field(default_factory=DarkChannelPriorConfig)
     """Blind mode: the photos dehazed by the learned medium keep the dark channel of clear views (sets β)."""
     compare_baseline: bool = True

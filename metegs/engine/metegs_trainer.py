@@ -22,7 +22,7 @@ from metegs.engine.trainer import StepRender, Trainer
 from metegs.errors import ConfigError
 from metegs.gaussians.model import GaussianModel
 from metegs.gaussians.sh import rgb_to_sh
-from metegs.losses.dark_channel import dark_channel_loss
+from metegs.losses.dark_channel import dark_channel_loss, photo_veil
 from metegs.losses.photometric import box_detail
 from metegs.losses.robust import (
     LOW_QUANTILE,
@@ -184,7 +184,7 @@ class MeteGSTrainer(Trainer):
                 self.decide(
                     "robust mask",
                     f"off: the photos do not show the streaks of {rain_phrase(rain)} ({strokes}, under "
-                    f"{r.min_stroke_energy:g}): the weather models take its veil and faint streaks, and trimming the "
+                    f"{r.min_stroke_energy:g}): the weather models take what shows of it, and trimming the "
                     "photos' brightest pixels would dim the scene (--robust.min-stroke-energy 0: the record alone "
                     "decides)",
                 )
@@ -223,11 +223,19 @@ class MeteGSTrainer(Trainer):
                 why += f"; streaks are under 2 px wide at {longer} px, so D-SSIM sees render and photo as they are"
         self.decide("low-quantile fit", why)
 
-    def _photos_stroke_energy(self, most: int = 16) -> float:
-        """Median `stroke_energy` of up to ``most`` training photos, evenly spread over the training views."""
+    def _sampled_photos(self, most: int = 16) -> list[torch.Tensor]:
+        """Up to ``most`` training photos [H, W, 3], evenly spread over the training views: what the run asks of the
+        photos before training (`_photos_stroke_energy`, `_photos_veil`)."""
         views = self.dataset.train_indices
-        picked = views[:: max(1, -(-len(views) // most))]
-        return float(np.median([stroke_energy(self.dataset.images[i]) for i in picked]))
+        return [self.dataset.images[i] for i in views[:: max(1, -(-len(views) // most))]]
+
+    def _photos_stroke_energy(self) -> float:
+        """Median `stroke_energy` of the `_sampled_photos`."""
+        return float(np.median([stroke_energy(photo) for photo in self._sampled_photos()]))
+
+    def _photos_veil(self, airlight: torch.Tensor) -> float:
+        """Median `photo_veil` of the `_sampled_photos` under ``airlight`` [3]."""
+        return float(np.median([photo_veil(photo, airlight) for photo in self._sampled_photos()]))
 
     def _build_weather(self) -> list[WeatherModel]:
         from metegs.weather.conditions import describe, scene_metres_per_unit
@@ -256,7 +264,6 @@ class MeteGSTrainer(Trainer):
                 if depth_m is None:
                     depth_m = typical_depth_m(ds.cameras, self.scene.points, scene.metres_per_unit)
                 veil = veil_fraction(beta, depth_m)
-                self.medium_optical_depth = max(self.medium_optical_depth, beta * depth_m)
                 if veil < VISIBLE_CONTRAST_LOSS:
                     self.decide(
                         f"weather {name}",
@@ -265,6 +272,17 @@ class MeteGSTrainer(Trainer):
                         "notices: the photos cannot tell it from the surfaces' colours; removing it could only bias them",
                     )
                     continue
+                shown = self._photos_veil(model.airlight.detach())
+                if shown < c.min_photo_veil:
+                    self.decide(
+                        f"weather {name}",
+                        f"off: the record's β {beta:.2e}/m over clear air would take {veil:.0%} of the contrast at the "
+                        f"scene's typical depth ({depth_m:.0f} m), but the photos' darkest patches show {shown:.1%} "
+                        f"of veil, under {c.min_photo_veil:.0%}: they show no medium (--min-photo-veil 0: the record "
+                        "decides)",
+                    )
+                    continue
+                self.medium_optical_depth = max(self.medium_optical_depth, beta * depth_m)
             if isinstance(model, FogAnalytic):
                 self._decide_record_prior(name, model)
             built.append((name, model))

@@ -76,6 +76,22 @@ def pinball(values: torch.Tensor, quantile: float) -> torch.Tensor:
     return torch.maximum(quantile * values, (quantile - 1.0) * values).mean()
 
 
+VEIL_QUANTILE = 0.05
+"""The share of a photo's patches whose dark channel `photo_veil` reads: its darkest, below which a photo's own
+noise and black borders lie (clear views of the Ethiopian head and the instant-ngp fox: 0.000-0.007)."""
+
+
+def photo_veil(image: torch.Tensor, airlight: torch.Tensor, quantile: float = VEIL_QUANTILE) -> float:
+    """The veil a photo shows: ``quantile`` of the dark channel of ``image`` [H, W, 3] / ``airlight`` [3] (every
+    `sample_stride`-th pixel, He et al.'s patch). Through a medium of transmission t a surface near black reads
+    I = A·(1 − t), so its dark channel over A is the share of contrast the medium takes there
+    (`weather.medium.veil_fraction`); clear photos hold such patches at about 0, fog lifts all of them."""
+    step = sample_stride(*image.shape[:2])
+    x = image[::step, ::step].detach().float() / airlight.detach().to(image.device).float().clamp_min(1e-3)
+    dark = dark_channel(x, patch_size(*x.shape[:2]))
+    return float(torch.quantile(dark.flatten(), quantile))
+
+
 def dark_channel_loss(dehazed: torch.Tensor, valid: torch.Tensor, config: DarkChannelPriorConfig) -> torch.Tensor:
     """Pinball loss holding ``config.quantile`` of the dark channel of ``dehazed`` [H, W, 3] at zero over the
     ``valid`` [H, W] bool pixels (a patch touching an invalid pixel is left out; every `sample_stride`-th pixel of

@@ -14,6 +14,7 @@ from metegs.losses.photometric import PhotometricLossConfig
 from metegs.models.gtn import GTNConfig
 from metegs.render import RenderSettings
 from metegs.weather.conditions import ConditionsConfig
+from metegs.weather.fog_analytic import FogAnalytic
 from metegs.weather.learnable import LearnableTransients
 
 
@@ -497,6 +498,30 @@ def test_heavy_rain_the_photos_do_not_show_is_not_trimmed(tmp_path):
     assert shown.decisions["low-quantile fit"].startswith("on")
     record = tiny_metegs(tmp_path / "record", **{**options, "robust": record_robust()}).setup()  # the record decides
     assert record.robust_from is not None and "photos show" not in record.decisions["robust mask"]
+
+
+def test_a_medium_the_photos_do_not_show_is_left_out(tmp_path):
+    """The record's medium is on only where the training photos' darkest patches show at least `min_photo_veil` of
+    veil (the median `photo_veil` over the training views); where they show less the decision gives the value, and
+    per-view exposure is decided as in 3dgs. The tiny scene's grey ground never reads clear, so the bar is moved
+    to either side of what its fogged photos show."""
+    from metegs.losses.dark_channel import photo_veil
+
+    fogged = tiny_metegs(tmp_path / "fogged", max_steps=1).setup()
+    (fog,) = [m for m in fogged.weather_models if isinstance(m, FogAnalytic)]
+    veil = fogged._photos_veil(fog.airlight.detach())
+    views = fogged.dataset.train_indices
+    assert veil == pytest.approx(float(np.median([photo_veil(fogged.dataset.images[i], fog.airlight) for i in views])))
+    assert veil > MeteGSConfig().min_photo_veil and fogged.decisions["weather fog-analytic"] == "on"
+    assert fogged.has_medium and fogged.decisions["view_exposure"].startswith("off (a fog model is on")
+    clear = tiny_metegs(tmp_path / "clear", max_steps=1, min_photo_veil=min(1.0, veil + 0.05)).setup()
+    decision = clear.decisions["weather fog-analytic"]
+    assert decision.startswith("off: the record's β") and f"show {veil:.1%} of veil" in decision
+    assert not clear.has_medium and clear.medium_optical_depth == 0.0
+    assert "a fog model is on" not in clear.decisions["view_exposure"]  # as 3dgs decides it
+    assert "dark channel prior" not in clear.decisions and clear.decisions["weather rain-streaks"].startswith("on")
+    record = tiny_metegs(tmp_path / "record", max_steps=1, min_photo_veil=0.0).setup()
+    assert record.has_medium and record.decisions["weather fog-analytic"] == "on"
 
 
 def test_the_ssim_weight_of_the_low_quantile_fit_is_its_own(tmp_path):

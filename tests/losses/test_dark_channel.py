@@ -1,14 +1,19 @@
 """The dark-channel prior: the channel against a plain loop, the pinball loss against the quantile, dehazing against
-the fog it inverts, and β recovered from foggy photos alone."""
+the fog it inverts, β recovered from foggy photos alone, and a photo's veil against the transmission that made it."""
 
+from pathlib import Path
+
+import numpy as np
 import pytest
 import torch
+from PIL import Image
 
 from metegs.losses.dark_channel import (
     DarkChannelPriorConfig,
     dark_channel,
     dark_channel_loss,
     patch_size,
+    photo_veil,
     pinball,
     sample_stride,
 )
@@ -60,6 +65,43 @@ def scene_view(seed: int = 0) -> tuple[torch.Tensor, RenderOutput]:
     depth = torch.linspace(20, 150, W).expand(H, W).clone()
     out = RenderOutput(colour, torch.ones(H, W), depth, torch.zeros(0), torch.zeros(0, 2), 0, W, H)
     return colour, out
+
+
+HEAD = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "scenes" / "ethiopianhead-llff" / "images_8"
+
+
+def veiled(colour: torch.Tensor, transmission: float, airlight: torch.Tensor) -> torch.Tensor:
+    """``colour`` [H, W, 3] seen through a medium of one ``transmission``: J·t + A·(1 − t)."""
+    return colour * transmission + airlight * (1.0 - transmission)
+
+
+@pytest.mark.parametrize("transmission", [1.0, 0.95, 0.8, 0.5, 0.2])
+def test_a_photos_veil_is_the_contrast_its_medium_takes(transmission):
+    """Under one transmission t the darkest patches read 1 − t (`veil_fraction`), to within their own dark colour
+    (0.01·t / A); a larger photo of the same view reads the same (it is sampled, its patch scaled)."""
+    colour, _ = scene_view()
+    airlight = torch.tensor(AIRLIGHT)
+    photo = veiled(colour, transmission, airlight)
+    assert photo_veil(photo, airlight) == pytest.approx(1.0 - transmission, abs=0.015)
+    large = torch.nn.functional.interpolate(photo.permute(2, 0, 1)[None], scale_factor=4, mode="nearest")
+    assert photo_veil(large[0].permute(1, 2, 0), airlight) == pytest.approx(1.0 - transmission, abs=0.015)
+
+
+@pytest.mark.data
+def test_a_real_capture_shows_no_veil_until_a_medium_lifts_it():
+    """The Ethiopian head's clear photos show under half the contrast a person notices (`VISIBLE_CONTRAST_LOSS`);
+    through a medium that takes 10 % of it they read 10 %."""
+    from metegs.weather.airlight import estimate_airlight
+    from metegs.weather.medium import VISIBLE_CONTRAST_LOSS
+
+    files = sorted(HEAD.glob("*.jpg"))[::16] if HEAD.is_dir() else []
+    if not files:
+        pytest.skip(f"real LLFF scene not found at {HEAD} (needs ../shared beside the repository)")
+    photos = [torch.from_numpy(np.asarray(Image.open(p).convert("RGB"), dtype=np.float32) / 255) for p in files]
+    airlight = estimate_airlight(photos)
+    for path, photo in zip(files, photos):
+        assert photo_veil(photo, airlight) < 0.5 * VISIBLE_CONTRAST_LOSS, path.name
+        assert photo_veil(veiled(photo, 0.9, airlight), airlight) == pytest.approx(0.1, abs=0.03), path.name
 
 
 def test_dehazing_inverts_the_fog_where_the_surface_is_seen():
