@@ -395,9 +395,9 @@ class Trainer:
         if choice == "off" or (choice == "auto" and rendered):
             return None, None
         train, cameras = self.dataset.train_indices, self.dataset.cameras
-        # against clean references test views keep the average: tones learned from degraded photos hold their weather
-        scored_on_photos = self.dataset.clean_images is None
-        nearest = nearest_training_rows(cameras, train) if scored_on_photos else None
+        # clean references too are photos, each exposed where its camera stood; where the weather varies more from
+        # photo to photo than the exposure does, the learned tones say so and the test views keep the average
+        nearest = nearest_training_rows(cameras, train)
         exposure = ViewExposure(train, len(cameras), self.device, nearest=nearest)
         return exposure, adam(exposure.parameters(), lr=self.config.optim.exposure_lr, eps=self.config.optim.eps)
 
@@ -677,17 +677,13 @@ class Trainer:
 
     def _decide_test_tone(self) -> None:
         """Record which tone the test views are scored in (`ViewExposure.tones_from_nearest`)."""
-        if self.exposure.nearest is None:
-            why = "test views are scored against clean references, and the tones learned from the photos hold their weather"
-            self.decide("test_tone", f"the photos' average ({why})")
-        else:
-            near, average = self.exposure.tone_errors()
-            chosen = "their nearest training photo's" if near < average else "the photos' average"
-            self.decide(
-                "test_tone",
-                f"{chosen} (each training photo's tone from its nearest other photo's: {near:.4f} RMS; from the "
-                f"others' average: {average:.4f})",
-            )
+        near, average = self.exposure.tone_errors()
+        chosen = "their nearest training photo's" if near < average else "the photos' average"
+        self.decide(
+            "test_tone",
+            f"{chosen} (each training photo's tone from its nearest other photo's: {near:.4f} RMS; from the "
+            f"others' average: {average:.4f})",
+        )
         self.save_decisions()
 
     def extra_metrics(self) -> dict:

@@ -163,14 +163,22 @@ def test_test_views_keep_the_average_tone_where_each_photo_was_exposed_at_random
     assert exposure_runs["with"][1]["test_tone"] == "average" and exposure_runs["without"][1]["test_tone"] is None
 
 
-def test_test_views_keep_the_average_tone_against_clean_references(tmp_path):
+def test_against_clean_references_the_same_rule_picks_the_tone(orbit_run, tmp_path):
+    """Clean references are photos too, each exposed where its camera stood: where the tone follows the orbit, a run
+    scored against them takes the nearest photo's tone as one scored on its photos does, and scores better for it."""
+    photos, _ = orbit_run
     from tests.engine.test_trainer import tiny_config
 
     cfg = tiny_config(tmp_path, save_renders=False)
-    trainer = replace(cfg, max_steps=2, eval_every=0.0, view_exposure="on").setup()  # the built-in scene's clean views
-    trainer.train()
-    assert trainer.exposure.nearest is None
-    assert "scored against clean references" in trainer.decisions["test_tone"]
+    trainer = replace(cfg, max_steps=150, eval_every=0.0, view_exposure="on", optim=OptimConfig(exposure_lr=3e-2))
+    trainer = trainer.setup()
+    trainer.dataset.images = [image.clone() for image in photos.dataset.images]
+    trainer.dataset.clean_images = [image.clone() for image in photos.dataset.images]
+    metrics = trainer.train()
+    assert trainer.dataset.clean_images is not None and metrics["test_tone"] == "nearest"
+    assert trainer.decisions["test_tone"].startswith("their nearest training photo's"), trainer.decisions
+    trainer.exposure.nearest = None  # the same Gaussians, test views in the photos' average tone
+    assert metrics["psnr"] > trainer.record_eval(quick=True)["psnr"] + 0.5
 
 
 def test_per_view_exposure_recovers_the_scene_from_photos_of_varying_exposure(exposure_runs):
