@@ -251,7 +251,7 @@ class MeteGSTrainer(Trainer):
             images=ds.images,
             seed=model_seed(c.seed),
         )
-        built, depth_m = [], None
+        built, depth_m, shown_veil = [], None, {}
         for name in c.weather:
             config = c.weather_config(name)
             model = config.setup(theta=theta, scene=scene).to(self.device)
@@ -272,8 +272,8 @@ class MeteGSTrainer(Trainer):
                         "notices: the photos cannot tell it from the surfaces' colours; removing it could only bias them",
                     )
                     continue
-                shown = self._photos_veil(model.airlight.detach())
-                if shown < c.min_photo_veil:
+                shown = self._photos_veil(model.airlight.detach()) if c.min_photo_veil > 0 else None
+                if shown is not None and shown < c.min_photo_veil:
                     self.decide(
                         f"weather {name}",
                         f"off: the record's β {beta:.2e}/m over clear air would take {veil:.0%} of the contrast at the "
@@ -282,6 +282,8 @@ class MeteGSTrainer(Trainer):
                         "decides)",
                     )
                     continue
+                if shown is not None:
+                    shown_veil[name] = f": the photos' darkest patches show {shown:.1%} of veil"
                 self.medium_optical_depth = max(self.medium_optical_depth, beta * depth_m)
             if isinstance(model, FogAnalytic):
                 self._decide_record_prior(name, model)
@@ -301,7 +303,7 @@ class MeteGSTrainer(Trainer):
                 count = sum(len(v.means) for v in model.views.values()) / max(len(model.views), 1)
                 self.decide(f"weather {name}", f"on: {count:.0f} learnable Gaussians per training view")
             else:
-                self.decide(f"weather {name}", "on")
+                self.decide(f"weather {name}", "on" + shown_veil.get(name, ""))
             self.active_kinds.add(kind_of(name))
             models.append(model)
         return models

@@ -405,7 +405,7 @@ def test_a_medium_too_faint_to_see_at_the_scene_depth_is_left_out(tmp_path):
     assert near.decisions["weather fog-analytic"].startswith("off: at β")
     assert not any(m.name == "fog-analytic" for m in near.weather_models)
     far = trainer_at(2000.0, 100.0)  # the same photos said to span hundreds of metres: the veil shows
-    assert far.decisions["weather fog-analytic"] == "on"
+    assert far.decisions["weather fog-analytic"].startswith("on: the photos' darkest patches show")
 
 
 def test_typical_depth_is_the_median_distance_of_points_in_front():
@@ -512,7 +512,8 @@ def test_a_medium_the_photos_do_not_show_is_left_out(tmp_path):
     veil = fogged._photos_veil(fog.airlight.detach())
     views = fogged.dataset.train_indices
     assert veil == pytest.approx(float(np.median([photo_veil(fogged.dataset.images[i], fog.airlight) for i in views])))
-    assert veil > MeteGSConfig().min_photo_veil and fogged.decisions["weather fog-analytic"] == "on"
+    assert veil > MeteGSConfig().min_photo_veil
+    assert fogged.decisions["weather fog-analytic"] == f"on: the photos' darkest patches show {veil:.1%} of veil"
     assert fogged.has_medium and fogged.decisions["view_exposure"].startswith("off (a fog model is on")
     clear = tiny_metegs(tmp_path / "clear", max_steps=1, min_photo_veil=min(1.0, veil + 0.05)).setup()
     decision = clear.decisions["weather fog-analytic"]
