@@ -78,18 +78,28 @@ def pinball(values: torch.Tensor, quantile: float) -> torch.Tensor:
 
 VEIL_QUANTILE = 0.05
 """The share of a photo's patches whose dark channel `photo_veil` reads: its darkest, below which a photo's own
-noise and black borders lie (clear views of the Ethiopian head and the instant-ngp fox: 0.000-0.007)."""
+noise lies (clear views of the Ethiopian head and the instant-ngp fox: 0.001-0.014)."""
+
+BLACK = 1.0 / 255.0
+"""Pixels at or under this in every channel are no surface (an undistorted photo's borders, a masked sky): no
+medium leaves a pixel that dark, so `photo_veil` reads around them."""
 
 
 def photo_veil(image: torch.Tensor, airlight: torch.Tensor, quantile: float = VEIL_QUANTILE) -> float:
     """The veil a photo shows: ``quantile`` of the dark channel of ``image`` [H, W, 3] / ``airlight`` [3] (every
-    `sample_stride`-th pixel, He et al.'s patch). Through a medium of transmission t a surface near black reads
-    I = A·(1 − t), so its dark channel over A is the share of contrast the medium takes there
-    (`weather.medium.veil_fraction`); clear photos hold such patches at about 0, fog lifts all of them."""
+    `sample_stride`-th pixel, He et al.'s patch; black pixels left out). Through a medium of transmission t a surface
+    near black reads I = A·(1 − t), so its dark channel over A is the share of contrast the medium takes there
+    (`weather.medium.veil_fraction`); clear photos hold such patches at about 0, fog lifts all of them. 0 for a
+    photo that is black throughout."""
     step = sample_stride(*image.shape[:2])
-    x = image[::step, ::step].detach().float() / airlight.detach().to(image.device).float().clamp_min(1e-3)
-    dark = dark_channel(x, patch_size(*x.shape[:2]))
-    return float(torch.quantile(dark.flatten(), quantile))
+    x = image[::step, ::step].detach().float()
+    seen = x.amax(dim=-1) > BLACK
+    if not bool(seen.any()):
+        return 0.0
+    x = x / airlight.detach().to(x.device).float().clamp_min(1e-3)
+    lifted = torch.where(seen[..., None], x, x.amax() + 1.0)  # a black pixel is no patch's minimum
+    dark = dark_channel(lifted, patch_size(*x.shape[:2]))
+    return float(torch.quantile(dark[seen], quantile))
 
 
 def dark_channel_loss(dehazed: torch.Tensor, valid: torch.Tensor, config: DarkChannelPriorConfig) -> torch.Tensor:

@@ -85,6 +85,11 @@ def test_a_photos_veil_is_the_contrast_its_medium_takes(transmission):
     assert photo_veil(photo, airlight) == pytest.approx(1.0 - transmission, abs=0.015)
     large = torch.nn.functional.interpolate(photo.permute(2, 0, 1)[None], scale_factor=4, mode="nearest")
     assert photo_veil(large[0].permute(1, 2, 0), airlight) == pytest.approx(1.0 - transmission, abs=0.015)
+    bordered = photo.clone()
+    bordered[: H // 4] = 0.0  # a black border (an undistorted photo's) over a quarter of the view is no surface
+    bordered[:, -3:] = 0.0
+    assert photo_veil(bordered, airlight) == pytest.approx(1.0 - transmission, abs=0.015)
+    assert photo_veil(torch.zeros_like(photo), airlight) == 0.0
 
 
 @pytest.mark.data
