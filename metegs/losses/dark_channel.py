@@ -65,6 +65,12 @@ def dark_channel(image: torch.Tensor, patch: int) -> torch.Tensor:
     return window_min(image.amin(-1), patch)
 
 
+def masked_dark_channel(image: torch.Tensor, valid: torch.Tensor, patch: int) -> torch.Tensor:
+    """`dark_channel` of ``image`` [H, W, C] in which only the ``valid`` [H, W] bool pixels can be a patch's minimum
+    (the others are lifted above every value first) -> [H, W]."""
+    return dark_channel(torch.where(valid[..., None], image, image.detach().amax() + 1.0), patch)
+
+
 def sample_stride(height: int, width: int) -> int:
     """Every how many pixels the prior looks: it sets one level, which a quarter of a 500 px view measures as well
     (1 up to 480 px on the longer side, 2 up to 800 px, ...)."""
@@ -97,8 +103,7 @@ def photo_veil(image: torch.Tensor, airlight: torch.Tensor, quantile: float = VE
     if not bool(seen.any()):
         return 0.0
     x = x / airlight.detach().to(x.device).float().clamp_min(1e-3)
-    lifted = torch.where(seen[..., None], x, x.amax() + 1.0)  # a black pixel is no patch's minimum
-    dark = dark_channel(lifted, patch_size(*x.shape[:2]))
+    dark = masked_dark_channel(x, seen, patch_size(*x.shape[:2]))
     return float(torch.quantile(dark[seen], quantile))
 
 
@@ -110,9 +115,7 @@ def dark_channel_loss(dehazed: torch.Tensor, valid: torch.Tensor, config: DarkCh
     dehazed, valid = dehazed[::step, ::step], valid[::step, ::step]
     h, w = valid.shape
     patch = patch_size(h, w, config.patch_px)
-    # an invalid pixel must not be a patch's minimum: lift it above every value before the min-pool
-    lifted = torch.where(valid[..., None], dehazed, dehazed.detach().amax() + 1.0)
-    dark = dark_channel(lifted, patch)
+    dark = masked_dark_channel(dehazed, valid, patch)
     whole = window_min(valid.float(), patch) > 0.5
     if not bool(whole.any()):
         return dehazed.sum() * 0.0
