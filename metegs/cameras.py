@@ -218,3 +218,17 @@ class Cameras:
 def _bad(mask: torch.Tensor) -> str:
     idx = mask.nonzero().flatten().tolist()
     return ", ".join(map(str, idx[:10])) + (" ..." if len(idx) > 10 else "")
+
+
+def look_at_point(cameras: Cameras) -> torch.Tensor:
+    """Least-squares point closest to all optical axes. -> [3]."""
+    c = cameras.centers.double()
+    d = cameras.camera_to_worlds[:, :3, 2].double()
+    d = d / d.norm(dim=1, keepdim=True)
+    eye = torch.eye(3, dtype=torch.float64, device=c.device)
+    P = eye[None] - d[:, :, None] * d[:, None, :]
+    A = P.sum(0)
+    b = (P @ c[:, :, None]).sum(0)
+    if torch.linalg.matrix_rank(A) < 3:  # parallel axes (forward-facing): a point in front of the mean camera
+        return (c.mean(0) + d.mean(0) * c.std(0).norm().clamp_min(1.0)).float()
+    return torch.linalg.solve(A, b).flatten().float()

@@ -74,7 +74,7 @@ def render_camera_path(trainer, args: RenderArgs, cameras, fps: float) -> Path:
 
 def path_cameras(trainer, args: RenderArgs):
     """The cameras of ``args.camera_path`` on the run's device and the video's frames per second."""
-    from metegs.engine.init import look_at_point
+    from metegs.cameras import look_at_point
     from metegs.render.camera_path import interpolate, read_camera_path, spiral
 
     ds = trainer.dataset

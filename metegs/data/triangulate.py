@@ -52,7 +52,8 @@ class TriangulatedPoints:
     """The cache file read or written (None when it could not be written)."""
 
 
-def _cache_key(image_paths: list[Path], cameras: Cameras, opts: SfmOptions, version: str) -> str:
+def cache_key(image_paths: list[Path], cameras: Cameras, version: str, options: str) -> str:
+    """Digest of the photos (path, size, mtime), the cameras, the tool's ``version`` and its ``options``."""
     h = hashlib.sha1(version.encode())
     for path in image_paths:
         stat = Path(path).stat()
@@ -60,11 +61,12 @@ def _cache_key(image_paths: list[Path], cameras: Cameras, opts: SfmOptions, vers
     h.update(np.ascontiguousarray(cameras.camera_to_worlds.double().numpy()).tobytes())
     h.update(np.ascontiguousarray(cameras.intrinsics().double().numpy()).tobytes())
     h.update(np.stack([cameras.width.numpy(), cameras.height.numpy()]).astype(np.int64).tobytes())
-    h.update(f"{opts.max_image_size}|{opts.max_features}".encode())
+    h.update(options.encode())
     return h.hexdigest()[:16]
 
 
-def _load(path: Path) -> TriangulatedPoints | None:
+def load_points(path: Path) -> TriangulatedPoints | None:
+    """The points cached in ``path``, or None (with a warning) when the file cannot be read."""
     try:
         with np.load(path, allow_pickle=False) as f:
             return TriangulatedPoints(
@@ -75,7 +77,8 @@ def _load(path: Path) -> TriangulatedPoints | None:
         return None
 
 
-def _save(path: Path, result: TriangulatedPoints) -> Path | None:
+def save_points(path: Path, result: TriangulatedPoints) -> Path | None:
+    """Cache ``result`` in ``path``; -> the path, or None (with a warning) when it cannot be written."""
     buf = io.BytesIO()
     np.savez(
         buf,
@@ -172,13 +175,14 @@ def triangulate_known_poses(
     cache = None
     found = None
     if cache_dir is not None:
-        cache = Path(cache_dir) / f"points-{_cache_key(image_paths, cameras, opts, pycolmap.__version__)}.npz"
+        key = cache_key(image_paths, cameras, pycolmap.__version__, f"{opts.max_image_size}|{opts.max_features}")
+        cache = Path(cache_dir) / f"points-{key}.npz"
         if cache.is_file():
-            found = _load(cache)
+            found = load_points(cache)
     if found is None:
         found = _triangulate(image_paths, cameras, opts)
         if cache is not None:  # a failure too: the same photos and poses would fail the same way, minutes later
-            found.cache = _save(cache, found)
+            found.cache = save_points(cache, found)
     if len(found.points) < MIN_POINTS:
         where = f"; remembered in {found.cache} (delete it to try again)" if found.cache is not None else ""
         raise RuntimeError(

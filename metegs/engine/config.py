@@ -32,13 +32,15 @@ class ModelConfig:
     init_scale_multiplier: Annotated[float, POSITIVE] = 1.0
     """Multiplier of the initial scales (mean distance to the 3 nearest points)."""
     init_random_points: Annotated[int, Range(1)] = 20000
-    """Number of random initial Gaussians when the scene has no points (placed where training views overlap)."""
+    """Number of random initial Gaussians when the scene has no points (placed where training views overlap); also
+    the most points a plane sweep starts from."""
     random_init: bool = False
     """Ignore the scene's points and start from random Gaussians."""
     triangulate: bool = True
     """When the scene has photo files and poses but no points (LLFF, nerfstudio, Blender), triangulate SfM
-    points from the training views with pycolmap (known poses; cached in the scene folder) instead of
-    starting from random Gaussians."""
+    points from the training views with pycolmap (known poses; cached in the scene folder), where that fails
+    (rain streaks take the features) sweep depth planes through the views, instead of starting from random
+    Gaussians."""
 
 
 @dataclass

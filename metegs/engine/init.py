@@ -5,21 +5,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from metegs.cameras import Cameras
-
-
-def look_at_point(cameras: Cameras) -> torch.Tensor:
-    """Least-squares point closest to all optical axes. -> [3]."""
-    c = cameras.centers.double()
-    d = cameras.camera_to_worlds[:, :3, 2].double()
-    d = d / d.norm(dim=1, keepdim=True)
-    eye = torch.eye(3, dtype=torch.float64, device=c.device)
-    P = eye[None] - d[:, :, None] * d[:, None, :]
-    A = P.sum(0)
-    b = (P @ c[:, :, None]).sum(0)
-    if torch.linalg.matrix_rank(A) < 3:  # parallel axes (forward-facing): a point in front of the mean camera
-        return (c.mean(0) + d.mean(0) * c.std(0).norm().clamp_min(1.0)).float()
-    return torch.linalg.solve(A, b).flatten().float()
+from metegs.cameras import Cameras, look_at_point
 
 
 def random_points_in_view_overlap(cameras: Cameras, n: int, seed: int = 0, min_views: int = 3) -> np.ndarray:

@@ -101,6 +101,16 @@ class MeteGSTrainer(Trainer):
         self._setup_extra_points()
         self.method_optimizers = self._method_optimizers()
 
+    def _triangulation_photos(self) -> tuple[list[Path] | None, list[torch.Tensor], str]:
+        """The clean references where the clean branch trains on them: rain streaks, drops and haze take the
+        features that triangulation matches (the independent family's heavy rain on the Ethiopian head: 37 points
+        from the photos, 3000 and more from the clean references), and a run that is given the clean photos is
+        expected to start from their points as 3DGS on them does."""
+        paths = self.scene.clean_image_paths
+        if self.config.clean_supervision and paths is not None:
+            return paths, self.dataset.clean_images, "clean references"
+        return super()._triangulation_photos()
+
     def _initial_model(self) -> GaussianModel:
         model = super()._initial_model()
         self._coloured_from_points = not self.random_init

@@ -321,13 +321,8 @@ class Trainer:
             return None
         if self.scene.points is not None and len(self.scene.points) > 0:
             return self.scene.points, self.scene.point_colors
-        if not mc.triangulate or self.scene.image_paths is None:
-            return None
-        try:
-            import pycolmap  # noqa: F401 - triangulation's one dependency that a trimmed install may lack
-        except ImportError:
-            why = "pycolmap is not installed to triangulate points from the views (pip install pycolmap)"
-            self.decide("init", f"random Gaussians: {why}", warn=True)
+        photos, images, whose = self._triangulation_photos()
+        if not mc.triangulate or photos is None:
             return None
         from metegs.config import scene_cache
         from metegs.data.triangulate import CACHE_DIR, triangulate_known_poses
@@ -336,25 +331,67 @@ class Trainer:
         source = self.scene.source
         folder = None if source is None else (source if source.is_dir() else source.parent)
         cache = None if folder is None else scene_cache(folder, CACHE_DIR, "points")
+        try:
+            import pycolmap  # noqa: F401 - triangulation's one dependency that a trimmed install may lack
+        except ImportError:
+            why = "pycolmap is not installed to triangulate points from the views (pip install pycolmap)"
+            return self._swept_points([images[i] for i in views], [photos[i] for i in views], whose, cache, why)
         status = (
-            self.console.status(f"triangulating points from {len(views)} training views (pycolmap)")
+            self.console.status(f"triangulating points from {len(views)} training views' {whose} (pycolmap)")
             if self.console is not None
             else contextlib.nullcontext()
         )
         try:
             with status:
-                found = triangulate_known_poses(
-                    [self.scene.image_paths[i] for i in views], self.scene.cameras[views], cache
-                )
+                found = triangulate_known_poses([photos[i] for i in views], self.scene.cameras[views], cache)
         except (RuntimeError, ValueError, OSError) as exc:
-            self.decide("init", f"random Gaussians: triangulation failed ({exc})")
-            return None
+            why = f"triangulation failed: {exc}"
+            return self._swept_points([images[i] for i in views], [photos[i] for i in views], whose, cache, why)
         self.decide(
             "init",
-            f"{len(found.points)} points triangulated from {found.num_views} training views' known poses "
+            f"{len(found.points)} points triangulated from {found.num_views} training views' {whose} at their known poses "
             f"(mean reprojection error {found.reprojection_error_px:.2f} px; cache {found.cache})",
         )
         return found.points, found.colors
+
+    def _swept_points(
+        self, images: list[torch.Tensor], paths: list[Path], whose: str, cache: Path | None, failure: str
+    ) -> tuple[np.ndarray, np.ndarray] | None:
+        """Points of a plane sweep of the training views (`data.plane_sweep`) where triangulation cannot give them
+        (``failure`` says why: rain streaks and drops take SIFT's features, a plane sweep needs none; or no pycolmap).
+        None: random initialisation."""
+        from metegs.data.plane_sweep import sweep_known_poses
+
+        views = self.dataset.train_indices
+        status = (
+            self.console.status(f"sweeping depths in {len(views)} training views' {whose} ({failure[:60]})")
+            if self.console is not None
+            else contextlib.nullcontext()
+        )
+        try:
+            with status:
+                found = sweep_known_poses(
+                    images,
+                    paths,
+                    self.dataset.cameras[views],
+                    cache,
+                    max_points=self.config.model.init_random_points,
+                    seed=self.config.seed,
+                )
+        except (RuntimeError, ValueError, OSError) as exc:
+            self.decide("init", f"random Gaussians: {failure}; {exc}", warn=failure.startswith("pycolmap"))
+            return None
+        self.decide(
+            "init",
+            f"{len(found.points)} points from a plane sweep of {found.num_views} training views' {whose} at their "
+            f"known poses ({failure}; cache {found.cache})",
+        )
+        return found.points, found.colors
+
+    def _triangulation_photos(self) -> tuple[list[Path] | None, list[torch.Tensor], str]:
+        """(the image files, one per view, that `initial_points` triangulates from, or None; the same images as
+        loaded [H, W, 3]; what they are)."""
+        return self.scene.image_paths, self.dataset.images, "photos"
 
     @property
     def random_init(self) -> bool:

@@ -1,5 +1,5 @@
-"""Points triangulated from known poses (pycolmap): on the surfaces of the synthetic scene, cached, and a
-trainer that uses them when a scene has photos and poses but no points."""
+"""Points triangulated from known poses (pycolmap) or swept (plane sweep): on the surfaces of the synthetic scene,
+cached, and a trainer that uses them when a scene has photos and poses but no points."""
 
 from __future__ import annotations
 
@@ -35,8 +35,23 @@ def photographed(tmp_path_factory):
 
 def relative_depth_error(scene, points: np.ndarray) -> np.ndarray:
     """Per point, the smallest |z - exact depth| / exact depth over the views it projects into. -> [P]."""
-    best = np.full(len(points), np.inf)
-    for v in range(len(scene.cameras)):
+    return _depth_errors(scene, points, len(scene.cameras))[0].min(0)
+
+
+def visible_pixels(scene, points: np.ndarray, views: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per point, (view, row, column) of the first ``views`` view where its depth is nearest the exact depth: the
+    view that sees it. -> three [P] int arrays."""
+    err, rows, cols = _depth_errors(scene, points, views)
+    view = err.argmin(0)
+    pick = np.arange(len(points))
+    return view, rows[view, pick], cols[view, pick]
+
+
+def _depth_errors(scene, points: np.ndarray, views: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """|z - exact depth| / exact depth of each point in each of the first ``views`` views (inf outside it), and its
+    pixel's row and column there. -> three [V, P] arrays."""
+    errs, rows, cols = [], [], []
+    for v in range(views):
         cam = scene.cameras[v]
         w2c = cam.world_to_cameras()[0].double().numpy()
         p = points.astype(np.float64) @ w2c[:3, :3].T + w2c[:3, 3]
@@ -48,8 +63,10 @@ def relative_depth_error(scene, points: np.ndarray) -> np.ndarray:
         gt = scene.depths[v][r[inside].astype(int), u[inside].astype(int)]
         err = np.full(len(points), np.inf)
         err[inside] = np.abs(z[inside] - gt) / gt
-        best = np.minimum(best, err)
-    return best
+        errs.append(err)
+        rows.append(np.clip(np.nan_to_num(r), 0, h - 1).astype(int))
+        cols.append(np.clip(np.nan_to_num(u), 0, w - 1).astype(int))
+    return np.stack(errs), np.stack(rows), np.stack(cols)
 
 
 def test_points_lie_on_the_scene_surfaces(photographed, tmp_path):
@@ -133,6 +150,68 @@ def test_a_failed_triangulation_is_remembered_until_the_photos_change(photograph
     assert calls == [VIEWS, VIEWS]
 
 
+def heavy_rain(image: np.ndarray, seed: int) -> torch.Tensor:
+    """``image`` [H, W, 3] under the independent family's heavy rain (streak layers of its own, per view)."""
+    from metegs.weather.independent import rain_view
+
+    return torch.from_numpy(rain_view(np.random.default_rng(seed), image, "heavy", 10.0, np.full(3, 0.8))[0])
+
+
+@pytest.mark.parametrize("weather", ["clear", "heavy rain"])
+def test_plane_sweep_points_lie_on_the_scene_surfaces(photographed, weather):
+    """Under streaks drawn anew in every view the sweep still finds the surfaces: what one photo holds alone does
+    not correlate with its neighbours."""
+    from metegs.data.plane_sweep import plane_sweep_points
+
+    scene, _ = photographed
+    clean = [np.asarray(im, np.float32) for im in scene.images[:VIEWS]]
+    photos = (
+        [torch.from_numpy(im) for im in clean]
+        if weather == "clear"
+        else [heavy_rain(im, i) for i, im in enumerate(clean)]
+    )
+    cams = scene.cameras[list(range(VIEWS))]
+    points, colours = plane_sweep_points(photos, cams, max_points=5000)
+    assert 1000 <= len(points) <= 5000 and colours.shape == points.shape
+    err = relative_depth_error(scene, points)
+    assert np.median(err) < 0.01 and np.quantile(err, 0.9) < 0.05, (np.median(err), np.quantile(err, 0.9))
+
+    # colours against the photo of the view in which each point is visible (its depth there the exact one)
+    view, row, col = visible_pixels(scene, points, VIEWS)
+    seen = np.stack([photos[v].numpy()[r, c] for v, r, c in zip(view, row, col)])
+    assert np.abs(colours - seen).mean() < 0.1, np.abs(colours - seen).mean()
+
+
+def test_a_trainer_sweeps_the_views_where_triangulation_fails(photographed, tmp_path, monkeypatch):
+    """Rain that leaves SIFT a few dozen points: the Gaussians start from the sweep's points (cached like a
+    triangulation), not from random ones."""
+    from metegs.engine.config import TrainConfig
+
+    scene, paths = photographed
+    photos = []
+    for i, path in enumerate(paths):
+        photos.append(tmp_path / "rain" / path.name)
+        photos[-1].parent.mkdir(exist_ok=True)
+        save_image(photos[-1], heavy_rain(np.asarray(scene.images[i], np.float32), i).numpy())
+
+    def failing(*args, **kwargs):
+        raise RuntimeError("only 36 points could be triangulated")
+
+    monkeypatch.setattr(tri, "triangulate_known_poses", failing)
+    config = TrainConfig(max_steps=1, progress=False, output_dir=tmp_path / "runs")
+    config = replace(config, model=replace(config.model, init_random_points=3000))
+    rainy = subset(scene, photos, source=tmp_path / "rain")
+    trainer = config.setup(scene=rainy)
+    assert not trainer.random_init and 1000 <= len(trainer.model) <= 3000
+    assert "plane sweep" in trainer.decisions["init"] and "only 36 points" in trainer.decisions["init"]
+    err = relative_depth_error(scene, trainer.model.means.detach().numpy())
+    assert np.median(err) < 0.02
+    cached = list((tmp_path / "rain" / tri.CACHE_DIR).glob("sweep-*.npz"))
+    assert len(cached) == 1
+    again = config.setup(scene=rainy)
+    assert torch.equal(again.model.means, trainer.model.means) and "plane sweep" in again.decisions["init"]
+
+
 def subset(scene, paths, source):
     """The photographed views as a scene with photo files and poses but no points (like an LLFF capture)."""
     views = list(range(len(paths)))
@@ -182,6 +261,38 @@ def test_trainer_starts_from_triangulated_points_when_the_scene_has_none(photogr
     assert off.random_init and len(calls) == 1
 
 
+@pytest.mark.parametrize("clean_supervision", [True, False])
+def test_a_run_given_clean_references_triangulates_from_them(photographed, tmp_path, monkeypatch, clean_supervision):
+    """Rain and haze take the features triangulation matches; MeteGS trained on clean references starts from their
+    points, blind MeteGS (and 3DGS) from the photos'."""
+    from metegs.engine.metegs_config import MeteGSConfig
+
+    scene, paths = photographed
+    clean = []
+    for path in paths:
+        clean.append(tmp_path / "images_clean" / path.name)
+        clean[-1].parent.mkdir(exist_ok=True)
+        clean[-1].write_bytes(path.read_bytes())
+    seen = []
+
+    def fake(image_paths, cameras, cache_dir, opts=None):
+        seen.append(list(image_paths))
+        points = np.random.default_rng(0).normal(size=(500, 3)).astype(np.float32)
+        return tri.TriangulatedPoints(points, np.full_like(points, 0.5), len(image_paths), 0.5, cache=None)
+
+    monkeypatch.setattr(tri, "triangulate_known_poses", fake)
+    with_clean = replace(subset(scene, paths, source=tmp_path), clean_image_paths=clean)
+    config = MeteGSConfig(
+        max_steps=1, progress=False, output_dir=tmp_path / "runs", clean_supervision=clean_supervision
+    )
+    trainer = config.setup(scene=with_clean)
+    train = trainer.dataset.train_indices
+    expected = [clean[i] for i in train] if clean_supervision else [paths[i] for i in train]
+    assert seen == [expected] and not trainer.random_init
+    whose = "clean references" if clean_supervision else "photos"
+    assert f"training views' {whose} at their known poses" in trainer.decisions["init"]
+
+
 def test_a_read_only_scene_caches_its_points_in_the_user_cache(photographed, tmp_path, fake_triangulation, monkeypatch):
     """A dataset the user cannot write (a shared or mounted folder) is never written to: the points go to
     ``$XDG_CACHE_HOME/metegs/points/<digest of the scene's path>``, one folder per scene."""
@@ -204,7 +315,8 @@ def test_a_read_only_scene_caches_its_points_in_the_user_cache(photographed, tmp
     assert not any((tmp_path / name / tri.CACHE_DIR).exists() for name in ("scene-a", "scene-b"))
 
 
-def test_trainer_falls_back_to_random_points_when_triangulation_fails(photographed, tmp_path, monkeypatch):
+def test_trainer_falls_back_to_random_points_when_triangulation_and_the_sweep_fail(photographed, tmp_path, monkeypatch):
+    import metegs.data.plane_sweep as sweep
     from metegs.engine.config import TrainConfig
 
     scene, paths = photographed
@@ -214,12 +326,14 @@ def test_trainer_falls_back_to_random_points_when_triangulation_fails(photograph
         raise RuntimeError("only 3 points could be triangulated")
 
     monkeypatch.setattr(tri, "triangulate_known_poses", failing)
+    monkeypatch.setattr(sweep, "plane_sweep_points", lambda *a, **k: (np.zeros((7, 3), "f4"), np.zeros((7, 3), "f4")))
     trainer = TrainConfig(max_steps=1, progress=False, output_dir=tmp_path / "runs").setup(scene=posed_only)
     assert trainer.random_init and "only 3 points" in trainer.decisions["init"]
+    assert "the plane sweep found 7 points" in trainer.decisions["init"]
 
 
-def test_trainer_without_pycolmap_starts_from_random_points_and_says_why(photographed, tmp_path, monkeypatch):
-    """A machine without pycolmap (a GPU image with only the training packages) trains from random points."""
+def test_trainer_without_pycolmap_sweeps_the_views_and_says_why(photographed, tmp_path, monkeypatch):
+    """A machine without pycolmap (a GPU image with only the training packages) starts from the plane sweep."""
     import sys
 
     from metegs.engine.config import TrainConfig
@@ -229,7 +343,8 @@ def test_trainer_without_pycolmap_starts_from_random_points_and_says_why(photogr
     trainer = TrainConfig(max_steps=1, progress=False, output_dir=tmp_path / "runs").setup(
         scene=subset(scene, paths, source=None)
     )
-    assert trainer.random_init and "pycolmap is not installed" in trainer.decisions["init"]
+    assert not trainer.random_init and "pycolmap is not installed" in trainer.decisions["init"]
+    assert "plane sweep" in trainer.decisions["init"]
 
 
 def test_resuming_or_reopening_a_run_does_not_triangulate_again(photographed, tmp_path, fake_triangulation):
