@@ -357,7 +357,7 @@ class MeteGSTrainer(Trainer):
     def _decide_record_prior(self, name: str, fog: FogAnalytic) -> None:
         """What sets ``fog``'s β where the photometric fit alone cannot: ``auto`` asks if the views see the scene's
         (initial) points over distances far enough apart for the photos to measure β
-        (`MEASURABLE_DISTANCE_SPREAD`; unknown, so not, from random points); where they are not, blind training holds
+        (`MEASURABLE_DISTANCE_SPREAD`; unknown, so not, from random or swept points); where they are not, blind training holds
         it by the dark-channel prior
         (`dark_channel`), training with clean references (or with that prior off) near the met record's. Blind
         under rain heavier than light through dense fog the record holds it wherever the views are
@@ -369,6 +369,12 @@ class MeteGSTrainer(Trainer):
         if self.random_init:  # random points fill the views' overlap and say nothing of where the scene lies
             spread = None
             seen = "the Gaussians start from random points, so how far apart the views see the scene is unknown"
+        elif self.swept_init:  # the fox under rain + fog, blind: 14.86 dB with β free, 18.30 with the prior
+            spread = None
+            seen = (
+                "the Gaussians start from a plane sweep of photos that the weather took SIFT's features from; as from "
+                "random points, how far apart the views see the scene is left unmeasured"
+            )
         else:
             spread = distance_spread(self.dataset.cameras[self.dataset.train_indices], self.model.means.detach())
             seen = (

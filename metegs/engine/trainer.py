@@ -145,6 +145,8 @@ class Trainer:
         self.rasterizer = make_rasterizer(backend, self.device)
         self.extent = scene_extent(self.dataset.cameras[self.dataset.train_indices])
         self._random_init: bool | None = None
+        self.swept_init = False
+        """True when the Gaussians start from a plane sweep's points (`_swept_points`)."""
         self.resumed_from: Path | None = None
         """The checkpoint file this run continues (``load_checkpoint``), else None."""
         ckpt = None
@@ -156,6 +158,7 @@ class Trainer:
             self.model = self._checkpoint_model(ckpt)
             if "random_init" in ckpt:  # older checkpoints: found again from the scene (cached triangulation)
                 self._random_init = bool(ckpt["random_init"])
+            self.swept_init = bool(ckpt.get("swept_init", False))
         elif model is not None:
             self.model = model.to(self.device)
             self._random_init = False
@@ -381,6 +384,7 @@ class Trainer:
         except (RuntimeError, ValueError, OSError) as exc:
             self.decide("init", f"random Gaussians: {failure}; {exc}", warn=failure.startswith("pycolmap"))
             return None
+        self.swept_init = True
         self.decide(
             "init",
             f"{len(found.points)} points from a plane sweep of {found.num_views} training views' {whose} at their "
@@ -760,6 +764,7 @@ class Trainer:
             "history": self.history,
             "train_seconds": self.train_seconds,
             "random_init": self.random_init,
+            "swept_init": self.swept_init,
             "metegs_version": __version__,
             "method": self.config.method,
             "scene": self.scene_signature(),

@@ -210,6 +210,10 @@ def test_a_trainer_sweeps_the_views_where_triangulation_fails(photographed, tmp_
     assert len(cached) == 1
     again = config.setup(scene=rainy)
     assert torch.equal(again.model.means, trainer.model.means) and "plane sweep" in again.decisions["init"]
+    assert trainer.swept_init and again.swept_init
+    trainer.step = 1
+    resumed = replace(config, max_steps=2, load_checkpoint=trainer.save()).setup(scene=rainy)
+    assert resumed.swept_init and not resumed.random_init, "a resumed run must decide as its start did"
 
 
 def subset(scene, paths, source):
