@@ -8,7 +8,6 @@ Evaluation, renders and export use the clean branch only.
 
 from __future__ import annotations
 
-import contextlib
 import warnings
 from dataclasses import replace
 from pathlib import Path
@@ -336,8 +335,7 @@ class MeteGSTrainer(Trainer):
         restorer = restorer_for_kinds(kinds)
         views = list(self.dataset.train_indices)
         restored, cached = {}, 0
-        status = self.console.status("") if self.console is not None else contextlib.nullcontext()
-        with status as shown:
+        with self.status("") as shown:
             for n, i in enumerate(views):
                 if shown is not None:
                     shown.update(f"restoring the training photos in 2D ({restorer.name}): {n}/{len(views)}")

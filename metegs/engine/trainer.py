@@ -184,6 +184,11 @@ class Trainer:
             self._restore_state(ckpt)
 
     # --- setup -------------------------------------------------------------------------------------
+    def status(self, text: str):
+        """A context that shows ``text`` as a live status line while it lasts (the console's; nothing without one);
+        ``as`` gives the status to update, or None."""
+        return self.console.status(text) if self.console is not None else contextlib.nullcontext()
+
     def decide(self, key: str, text: str, warn: bool = False) -> None:
         """Record (and print once) a choice the run made about what to do or skip; ``warn``: as a warning (a part
         the user asked for is off)."""
@@ -339,13 +344,8 @@ class Trainer:
         except ImportError:
             why = "pycolmap is not installed to triangulate points from the views (pip install pycolmap)"
             return self._swept_points([images[i] for i in views], [photos[i] for i in views], whose, cache, why)
-        status = (
-            self.console.status(f"triangulating points from {len(views)} training views' {whose} (pycolmap)")
-            if self.console is not None
-            else contextlib.nullcontext()
-        )
         try:
-            with status:
+            with self.status(f"triangulating points from {len(views)} training views' {whose} (pycolmap)"):
                 found = triangulate_known_poses([photos[i] for i in views], self.scene.cameras[views], cache)
         except (RuntimeError, ValueError, OSError) as exc:
             why = f"triangulation failed: {exc}"
@@ -366,13 +366,8 @@ class Trainer:
         from metegs.data.plane_sweep import sweep_known_poses
 
         views = self.dataset.train_indices
-        status = (
-            self.console.status(f"sweeping depths in {len(views)} training views' {whose} ({failure[:60]})")
-            if self.console is not None
-            else contextlib.nullcontext()
-        )
         try:
-            with status:
+            with self.status(f"sweeping depths in {len(views)} training views' {whose} ({failure[:60]})"):
                 found = sweep_known_poses(
                     images,
                     paths,
