@@ -167,11 +167,11 @@ def plane_sweep_points(
     seed: int = 0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Points of `plane_sweep_depths` that the depth maps of at least a share ``agreeing`` of a view's neighbours
-    (and two) confirm (to ``max_relative_error`` of the depth), each coloured by the median over its view and those that confirm it, at most
-    ``max_points`` of them (a seeded random subset). ``images``: one [H, W, 3] in [0, 1] per camera.
-    -> ([P, 3] float32 points, [P, 3] float32 colours)."""
-    depths, cams, nbrs = plane_sweep_depths(images, cameras, max_side=max_side)
-    colour = [_small(im.cpu(), max_side) for im in images]
+    (and two) confirm (to ``max_relative_error`` of the depth), each coloured by the median over its view and those
+    that confirm it, at most ``max_points`` of them (a seeded random subset). ``images``: one [H, W, 3] in [0, 1]
+    per camera. -> ([P, 3] float32 points, [P, 3] float32 colours)."""
+    colour = [_small(im.cpu(), max_side) for im in images]  # [3, h, w]; the sweep below finds them small already
+    depths, cams, nbrs = plane_sweep_depths([c.permute(1, 2, 0) for c in colour], cameras, max_side=max_side)
     all_points, all_colours = [], []
     for r, (depth, nb) in enumerate(zip(depths, nbrs)):
         h, w = depth.shape

@@ -343,13 +343,13 @@ class Trainer:
             import pycolmap  # noqa: F401 - triangulation's one dependency that a trimmed install may lack
         except ImportError:
             why = "pycolmap is not installed to triangulate points from the views (pip install pycolmap)"
-            return self._swept_points([images[i] for i in views], [photos[i] for i in views], whose, cache, why)
+            return self._swept_points(images, photos, whose, cache, why)
         try:
             with self.status(f"triangulating points from {len(views)} training views' {whose} (pycolmap)"):
                 found = triangulate_known_poses([photos[i] for i in views], self.scene.cameras[views], cache)
         except (RuntimeError, ValueError, OSError) as exc:
             why = f"triangulation failed: {exc}"
-            return self._swept_points([images[i] for i in views], [photos[i] for i in views], whose, cache, why)
+            return self._swept_points(images, photos, whose, cache, why)
         self.decide(
             "init",
             f"{len(found.points)} points triangulated from {found.num_views} training views' {whose} at their known poses "
@@ -360,17 +360,17 @@ class Trainer:
     def _swept_points(
         self, images: list[torch.Tensor], paths: list[Path], whose: str, cache: Path | None, failure: str
     ) -> tuple[np.ndarray, np.ndarray] | None:
-        """Points of a plane sweep of the training views (`data.plane_sweep`) where triangulation cannot give them
-        (``failure`` says why: rain streaks and drops take SIFT's features, a plane sweep needs none; or no pycolmap).
-        None: random initialisation."""
+        """Points of a plane sweep of the training views of ``images`` (one per view, read from ``paths``;
+        `data.plane_sweep`) where triangulation cannot give them (``failure`` says why: rain streaks and drops take
+        SIFT's features, a plane sweep needs none; or no pycolmap). None: random initialisation."""
         from metegs.data.plane_sweep import sweep_known_poses
 
         views = self.dataset.train_indices
         try:
             with self.status(f"sweeping depths in {len(views)} training views' {whose} ({failure[:60]})"):
                 found = sweep_known_poses(
-                    images,
-                    paths,
+                    [images[i] for i in views],
+                    [paths[i] for i in views],
                     self.dataset.cameras[views],
                     cache,
                     max_points=self.config.model.init_random_points,
