@@ -58,11 +58,12 @@ def evaluate_checks(suite, runs: list[dict], conditions: dict) -> list[dict]:
                         passed = None
                         if va is not None and vb is not None:
                             sa, sb = (va, vb) if HIGHER_IS_BETTER[metric] else (-va, -vb)
-                            passed = sa > sb if op == ">" else sa >= sb - check.tolerance
+                            passed = sa > sb + check.margin if op == ">" else sa >= sb - check.tolerance
                         out.append(
                             {
                                 "expect": check.expect,
-                                "pair": f"{a} {op} {b}",
+                                "pair": f"{a} {op} {b}"
+                                + (f" + {check.margin:g}" if op == ">" and check.margin else ""),
                                 "metric": metric,
                                 "scene": scene,
                                 "condition": name,

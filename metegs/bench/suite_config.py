@@ -152,6 +152,8 @@ class CheckSpec:
     """Only conditions of these kinds (rain, fog, rain+fog)."""
     tolerance: float = 0.0
     """Slack of ``>=`` (in the metric's unit)."""
+    margin: float = 0.0
+    """How much the left of ``>`` must pass the right by (in the metric's unit: "3 dB over 3DGS")."""
 
     def chain(self) -> list[tuple[str, str, str]]:
         """[(left, op, right)] pairs of the expectation."""
@@ -166,6 +168,8 @@ class CheckSpec:
         bad = [m for m in self.metrics if m not in ("psnr", "ssim", "lpips")]
         if bad:
             raise ConfigError(f"check {self.expect!r}: unknown metric(s) {bad}; use psnr, ssim, lpips")
+        if self.margin < 0 or self.tolerance < 0:
+            raise ConfigError(f"check {self.expect!r}: margin and tolerance are amounts (>= 0)")
 
 
 @dataclass

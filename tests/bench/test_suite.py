@@ -210,6 +210,36 @@ def test_cli_takes_a_suite_file_positionally(monkeypatch, capsys, tmp_path):
 
 def test_check_spec_parses_chains():
     assert CheckSpec("a >= b > c").chain() == [("a", ">=", "b"), ("b", ">", "c")]
+    with pytest.raises(ConfigError, match="amounts"):
+        CheckSpec("a > b", margin=-1.0)
+
+
+def test_check_margin_asks_the_left_to_pass_by_it():
+    """'a > b' by a margin of 2 dB: a 5 dB lead passes, a 1 dB lead fails (as both do at 6 dB); the pair names it."""
+    runs = [
+        _run("synthetic", "f", "a", 25.0, 0.80),
+        _run("synthetic", "f", "b", 20.0, 0.85),
+        _run("synthetic", "f", "c", 21.0, 0.7),
+    ]
+
+    class C:
+        kind = "fog"
+
+    verdicts = {}
+    for margin in (2.0, 6.0):
+        checks = [
+            {"expect": "a > b", "metrics": ["psnr"], "margin": margin},
+            {"expect": "c > b", "metrics": ["psnr"], "margin": margin},
+        ]
+        suite = suite_from_dict(_minimal(methods=[{"name": "a"}, {"name": "b"}, {"name": "c"}], checks=checks))
+        for c in evaluate_checks(suite, runs, {"f": C()}):
+            verdicts[(c["pair"], margin)] = c["passed"]
+    assert verdicts == {
+        ("a > b + 2", 2.0): True,
+        ("c > b + 2", 2.0): False,
+        ("a > b + 6", 6.0): False,
+        ("c > b + 6", 6.0): False,
+    }
 
 
 def _tiny_scene_on_disk(folder: Path) -> Path:
