@@ -35,7 +35,8 @@ class DarkChannelPriorConfig:
 
     mode: Literal["auto", "on", "off"] = "auto"
     """auto: on where the photos cannot measure β themselves (every view sees the scene from about the same
-    distance); on: wherever training is blind."""
+    distance) or the fog is dense at the scene's depth with no heavy rain through it; on: wherever training is
+    blind."""
     weight: Annotated[float, NON_NEGATIVE] = 1.0
     """Weight of the prior in the weather branch's loss (0: off)."""
     quantile: Annotated[float, Range(0.0, 1.0)] = 0.1
