@@ -456,9 +456,12 @@ class MeteGSTrainer(Trainer):
         elif c.mode == "on":
             on, why = True, "on (--dark-channel.mode on)"
         elif measurable and dense:
-            on, why = True, f"on: {seen}, but {dense} (visibility under 3x that depth): a scene without near-black "
-            why += (
-                "patches biases the veil this prior reads by its own dark channel times the transmission, small there"
+            on, why = (
+                True,
+                (
+                    f"on: {seen}, but {dense} (visibility under 3x that depth): a scene without near-black patches biases "
+                    "the veil this prior reads by its own dark channel times the transmission, small there"
+                ),
             )
         elif measurable:
             on, why = False, f"off: {seen}: the photos measure β (--dark-channel.mode on adds it)"
