@@ -446,9 +446,9 @@ class MeteGSTrainer(Trainer):
         the prior reads by J·t against a veil of 1 − t: in thin media that swamps it (the built-in scene's default
         weather, 7.6 dB lost), in dense fog hardly (the built-in scene in 200 m fog: 17.02 dB with it, 14.20 with β
         free; the Lund street in independent 200 m fog, optical depth 1.68, 13.57 against 12.97; the fox's 0.76 stays
-        off, where forced on it cost 1.6 dB). Rain through the dense fog keeps the record
-        prior instead (`_rain_through_dense_fog`; the Lund street under independent rain + fog: 12.34 dB, 11.98 with the
-        dark channel)."""
+        off, where forced on it cost 1.6 dB). Rain through the dense fog keeps the record prior instead
+        (`_rain_through_dense_fog`; the Lund street under independent rain + fog: 12.34 dB, 11.98 with the dark
+        channel)."""
         c = self.config.dark_channel
         if self.use_clean:
             on, why = False, "off: the clean references measure the medium"
@@ -457,12 +457,10 @@ class MeteGSTrainer(Trainer):
         elif c.mode == "on":
             on, why = True, "on (--dark-channel.mode on)"
         elif measurable and dense:
-            on, why = (
-                True,
-                (
-                    f"on: {seen}, but {dense} (visibility under 3x that depth): a scene without near-black patches biases "
-                    "the veil this prior reads by its own dark channel times the transmission, small there"
-                ),
+            on = True
+            why = (
+                f"on: {seen}, but {dense} (visibility under 3x that depth): a scene without near-black patches biases "
+                "the veil this prior reads by its own dark channel times the transmission, small there"
             )
         elif measurable:
             on, why = False, f"off: {seen}: the photos measure β (--dark-channel.mode on adds it)"
