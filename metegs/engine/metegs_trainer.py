@@ -19,9 +19,10 @@ from metegs.engine.metegs_config import BLURRED_PRUNE_OPACITY, SHARP_PRUNE_OPACI
 from metegs.engine.optim import adam
 from metegs.engine.trainer import StepRender, Trainer
 from metegs.errors import ConfigError
+from metegs.eval.veil import photo_veil
 from metegs.gaussians.model import GaussianModel
 from metegs.gaussians.sh import rgb_to_sh
-from metegs.losses.dark_channel import dark_channel_loss, photo_veil
+from metegs.losses.dark_channel import dark_channel_loss
 from metegs.losses.photometric import box_detail
 from metegs.losses.robust import (
     LOW_QUANTILE,

@@ -3,14 +3,8 @@
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
 
-
-def dark_channel(image: torch.Tensor, patch: int = 15) -> torch.Tensor:
-    """Min over RGB and a patch x patch window. image: [H, W, 3] -> [H, W]."""
-    m = image.amin(dim=-1)[None, None]
-    pad = patch // 2
-    return -F.max_pool2d(-F.pad(m, (pad, pad, pad, pad), mode="replicate"), patch, stride=1)[0, 0]
+from metegs.eval.veil import dark_channel
 
 
 def estimate_airlight(images: list[torch.Tensor], top_fraction: float = 0.001, patch: int = 15) -> torch.Tensor:

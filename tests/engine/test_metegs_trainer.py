@@ -518,7 +518,7 @@ def test_a_medium_the_photos_do_not_show_is_left_out(tmp_path):
     veil (the median `photo_veil` over the training views); where they show less the decision gives the value, and
     per-view exposure is decided as in 3dgs. The tiny scene's grey ground never reads clear, so the bar is moved
     to either side of what its fogged photos show."""
-    from metegs.losses.dark_channel import photo_veil
+    from metegs.eval.veil import photo_veil
 
     fogged = tiny_metegs(tmp_path / "fogged", max_steps=1).setup()
     (fog,) = [m for m in fogged.weather_models if isinstance(m, FogAnalytic)]

@@ -8,15 +8,8 @@ import pytest
 import torch
 from PIL import Image
 
-from metegs.losses.dark_channel import (
-    DarkChannelPriorConfig,
-    dark_channel,
-    dark_channel_loss,
-    patch_size,
-    photo_veil,
-    pinball,
-    sample_stride,
-)
+from metegs.eval.veil import dark_channel, patch_size, photo_veil, sample_stride
+from metegs.losses.dark_channel import DarkChannelPriorConfig, dark_channel_loss, pinball
 from metegs.meteo import CameraSpec, theta_from_values
 from metegs.render.base import RenderOutput, RenderSettings
 from metegs.weather import WeatherScene
