@@ -424,21 +424,27 @@ class MeteGSTrainer(Trainer):
             g = fog.patch_log_scale.shape
             self.decide(f"{name} patches", f"on: per view, a {g[2]}x{g[1]} grid scales the optical depth")
 
+    def _dense_medium(self) -> str | None:
+        """The medium's optical depth at the scene's typical depth in words where it is dense there
+        (`DENSE_OPTICAL_DEPTH`: visibility under 3x that depth), else None."""
+        if self.medium_optical_depth < DENSE_OPTICAL_DEPTH:
+            return None
+        return f"the medium's optical depth at the scene's typical depth is {self.medium_optical_depth:.2f}"
+
     def _rain_through_dense_fog(self) -> str | None:
         """Blind, rain heavier than light through a dense medium (`DENSE_OPTICAL_DEPTH` at the scene's typical depth):
         the rain in words, else None."""
         rain = self.weather_theta(self.scene).rain
-        dense = self.medium_optical_depth >= DENSE_OPTICAL_DEPTH
-        if self.use_clean or rain.intensity_class in LIGHT_OR_NONE or not dense:
+        if self.use_clean or rain.intensity_class in LIGHT_OR_NONE or self._dense_medium() is None:
             return None
         return rain_phrase(rain)
 
     def _dense_fog_alone(self) -> str | None:
         """Blind, a medium dense at the scene's typical depth (`DENSE_OPTICAL_DEPTH`) that no rain heavier than light
         falls through: its optical depth in words, else None."""
-        if self.use_clean or self.medium_optical_depth < DENSE_OPTICAL_DEPTH or self._rain_through_dense_fog():
+        if self.use_clean or self._rain_through_dense_fog():
             return None
-        return f"the medium's optical depth at the scene's typical depth is {self.medium_optical_depth:.2f}"
+        return self._dense_medium()
 
     def _decide_dark_channel(self, fog: FogAnalytic, measurable: bool, seen: str, dense: str | None) -> bool:
         """Whether the dark-channel prior holds ``fog`` (then it joins `dehazing`): blind training only, and with
@@ -611,11 +617,11 @@ class MeteGSTrainer(Trainer):
         if sharp is None and rain.intensity_class in LIGHT_OR_NONE:
             why = f"{rain_phrase(rain)} leaves no streaks for resets to clear, and under the fog a reset costs "
             why += "Gaussians that its dimmed gradients hardly regrow"
-        elif self.medium_optical_depth >= DENSE_OPTICAL_DEPTH and not self.random_init:
+        elif self._dense_medium() and not self.random_init:
             why = (
-                f"the medium's optical depth at the scene's typical depth is {self.medium_optical_depth:.2f} (visibility under "
-                "3x that depth) and the Gaussians started from an SfM cloud: a reset would cost its geometry, which "
-                "the fog-dimmed gradients hardly regrow, while what does regrow fits the rain"
+                f"{self._dense_medium()} (visibility under 3x that depth) and the Gaussians started from an SfM cloud: "
+                "a reset would cost its geometry, which the fog-dimmed gradients hardly regrow, while what does regrow "
+                "fits the rain"
             )
         else:
             return densifier
