@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 import tempfile
 from contextlib import contextmanager
@@ -26,8 +25,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-
-KOSCHMIEDER = 3.912
 
 
 @dataclass(frozen=True)
@@ -59,18 +56,16 @@ VARIANTS = {
 
 def streak_mask(rng: np.random.Generator, height: int, width: int, angle_deg: float) -> np.ndarray:
     """[H, W] in [0, 1]: seeds at 0.004 per pixel smeared along a line 48 px long per 640 px of width."""
+    from metegs.weather.independent import line_kernel
+
     seeds = (rng.random((height, width)) < 0.004).astype(np.float32)
-    n = max(3, int(round(48 * width / 640)) | 1)
-    kernel = np.zeros((n, n), np.float32)
-    c, a = n // 2, math.radians(angle_deg)
-    for s in np.linspace(-c, c, 4 * n):
-        kernel[int(round(c + s * math.cos(a))), int(round(c + s * math.sin(a)))] = 1.0
+    kernel = line_kernel(round(48 * width / 640), angle_deg)
     return np.clip(cv2.filter2D(seeds, -1, kernel, borderType=cv2.BORDER_REFLECT), 0.0, 1.0)
 
 
 def engine_view(variant: Variant):
     """A replacement of `IndependentEngine.view` that draws ``variant``."""
-    from metegs.weather.independent import pixel_rays
+    from metegs.weather.independent import KOSCHMIEDER, pixel_rays
 
     def view(self, i: int, image: np.ndarray, depth: np.ndarray) -> tuple[np.ndarray, dict]:
         cond = self.conditions[i]

@@ -617,9 +617,9 @@ class MeteGSTrainer(Trainer):
         if sharp is None and rain.intensity_class in LIGHT_OR_NONE:
             why = f"{rain_phrase(rain)} leaves no streaks for resets to clear, and under the fog a reset costs "
             why += "Gaussians that its dimmed gradients hardly regrow"
-        elif self._dense_medium() and not self.random_init:
+        elif (dense := self._dense_medium()) and not self.random_init:
             why = (
-                f"{self._dense_medium()} (visibility under 3x that depth) and the Gaussians started from an SfM cloud: "
+                f"{dense} (visibility under 3x that depth) and the Gaussians started from an SfM cloud: "
                 "a reset would cost its geometry, which the fog-dimmed gradients hardly regrow, while what does regrow "
                 "fits the rain"
             )

@@ -170,6 +170,19 @@ def fog_view(
     return out.astype(np.float32), t.astype(np.float32)
 
 
+def line_kernel(length_px: float, angle_deg: float) -> np.ndarray:
+    """[n, n] float32, n the odd side at least 3 nearest ``length_px``: ones along a line through the centre at
+    ``angle_deg`` from the image's vertical (clockwise positive), zeros elsewhere (not normalised)."""
+    n = max(3, int(round(length_px)) | 1)
+    kernel = np.zeros((n, n), np.float32)
+    c = n // 2
+    a = math.radians(angle_deg)
+    dx, dy = math.sin(a), math.cos(a)
+    for s in np.linspace(-c, c, 4 * n):
+        kernel[int(round(c + s * dy)), int(round(c + s * dx))] = 1.0
+    return kernel
+
+
 def streak_layer(
     rng: np.random.Generator,
     height: int,
@@ -185,13 +198,7 @@ def streak_layer(
     of ``length_px`` at ``angle_deg`` from the image's vertical (clockwise positive), widened and blurred; the
     brightest streaks reach about ``brightness``."""
     seeds = (rng.random((height, width)) < density).astype(np.float32) * rng.uniform(0.5, 1.0, (height, width))
-    n = max(3, int(round(length_px)) | 1)
-    kernel = np.zeros((n, n), np.float32)
-    c = n // 2
-    a = math.radians(angle_deg)
-    dx, dy = math.sin(a), math.cos(a)
-    for s in np.linspace(-c, c, 4 * n):
-        kernel[int(round(c + s * dy)), int(round(c + s * dx))] = 1.0
+    kernel = line_kernel(length_px, angle_deg)
     layer = cv2.filter2D(seeds, -1, kernel / kernel.sum(), borderType=cv2.BORDER_REFLECT)
     sigma = max(0.3, 0.5 * (width_px - 1.0) + blur_px)
     layer = cv2.GaussianBlur(layer, (0, 0), sigma)
