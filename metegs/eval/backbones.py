@@ -11,7 +11,9 @@ replaced by a substitute: missing or wrong ones raise `WeightsUnavailable`.
 
 from __future__ import annotations
 
+import contextlib
 import os
+import sys
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -203,10 +205,11 @@ def download_backbone(spec: BackboneSpec, net: str, how: str | None = None) -> M
     """The backbone's torchvision state dict, downloaded into the torch hub cache; a failure (remembered for the
     process) raises `WeightsUnavailable` ending with ``how`` to provide the file (default: where to put it)."""
     if spec.url not in FAILED_DOWNLOADS:
-        try:
-            return torch.hub.load_state_dict_from_url(
-                spec.url, map_location="cpu", progress=True, check_hash=True, weights_only=True
-            )
+        try:  # torch.hub announces the download on stdout: keep it beside the progress bar, off JSON printed there
+            with contextlib.redirect_stdout(sys.stderr):
+                return torch.hub.load_state_dict_from_url(
+                    spec.url, map_location="cpu", progress=True, check_hash=True, weights_only=True
+                )
         except Exception as e:  # noqa: BLE001 - offline (URLError), hash mismatch, disk full...
             FAILED_DOWNLOADS[spec.url] = f"{type(e).__name__}: {e}"
     raise WeightsUnavailable(

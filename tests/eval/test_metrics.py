@@ -274,6 +274,20 @@ def test_lpips_backbone_downloads_on_first_use_is_tried_once_offline_and_never_w
     assert reason is None and isinstance(model, lp.LPIPS) and len(calls) == 2
 
 
+def test_the_download_announcement_stays_off_stdout(tmp_path, empty_hub, monkeypatch, capsys):
+    """torch.hub writes "Downloading: ..." to stdout; scripts that print JSON there must not get it."""
+    state = torch.load(_write_fake_weights(tmp_path, "alex")[0], weights_only=True)
+
+    def announcing(url, **kwargs):
+        print(f"Downloading: {url}")
+        return state
+
+    monkeypatch.setattr(torch.hub, "load_state_dict_from_url", announcing)
+    backbones.download_backbone(backbones.BACKBONES["alex"], "alex")
+    out, err = capsys.readouterr()
+    assert out == "" and "Downloading" in err
+
+
 def test_bad_net_name():
     with pytest.raises(ValueError, match="alex"):
         lp.load_lpips("squeezenet")
