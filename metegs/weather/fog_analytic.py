@@ -7,8 +7,10 @@ channel comes from θ_fog (visibility by the 5 % rule, minus the rain's share, p
 β and A are learnable (log-β, logit-A) starting from θ. Where every view sees the scene at about the same
 distance (forward-facing captures), a hazy scene under less fog fits the photos as well as the true fog over the
 clean scene, and a free β drifts down while the scene takes the haze in: there (``record_prior`` auto, decided by
-the trainer) a prior holds ln β near θ's; where the distances differ across views the photos measure β, and it
-stays free, unless (blind) heavy rain falls through dense fog: the light it adds drowns that measure.
+the trainer) a prior holds ln β near θ's; where the distances differ across views the photos measure β: beside
+clean references it stays free, blind it starts at, and the prior holds it near, the photos' measure at the scene's
+points (`hold_at`, `metegs.weather.medium_fit`), since there too the scene can take the haze in; unless heavy rain
+falls through dense fog: the light it adds drowns that measure, and θ's β is held.
 
 Where the photos measure the medium (the prior off), the fog also learns how it thins with height above the
 ground, starting uniform: β(x) = β·exp(−k·h(x)), h the height in metres over the cameras' mean and k learnable, so
@@ -21,6 +23,7 @@ clean render.
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from typing import Annotated, Literal
 
@@ -130,6 +133,10 @@ class FogAnalytic(WeatherModel):
         self.log_beta = torch.nn.Parameter(torch.log(beta.clamp_min(1e-12)), requires_grad=config.learnable)
         # θ's β for the prior: moves with the model, stays out of checkpoints (their keys are unchanged)
         self.register_buffer("record_log_beta", self.log_beta.detach().clone(), persistent=False)
+        self.register_buffer("prior_log_beta", self.log_beta.detach().clone(), persistent=False)
+        """ln β the prior holds it near: θ's, or the photos' measure at the scene's points (`hold_at`)."""
+        self.measured_beta: float | None = None
+        """β (1/m) the photos show at the scene's points, where the trainer measured it (`hold_at`)."""
         self.use_record_prior = config.record_prior == "on"
         """Whether `prior` holds β near θ's (the trainer decides ``auto`` from the views' distances)."""
         self.airlight_logit = torch.nn.Parameter(torch.logit(a), requires_grad=config.learnable)
@@ -142,6 +149,15 @@ class FogAnalytic(WeatherModel):
         self.register_buffer("up", up, persistent=False)
         self.register_buffer("reference_height", (scene.cameras.centers.float() @ up).mean(), persistent=False)
         self._rays: dict[int, torch.Tensor] = {}
+
+    def hold_at(self, beta_per_m: float) -> None:
+        """Start β at ``beta_per_m`` (1/m, the photos' measure) and centre the prior there, θ's ratios between the
+        colour channels kept."""
+        shift = math.log(beta_per_m) - float(self.record_log_beta.mean())
+        with torch.no_grad():
+            self.log_beta.copy_(self.record_log_beta + shift)
+            self.prior_log_beta.copy_(self.record_log_beta + shift)
+        self.measured_beta = beta_per_m
 
     def learn_layers(self) -> bool:
         """Let β change with height from now on, when ``layered`` and ``learnable`` allow it -> whether it does."""
@@ -257,11 +273,12 @@ class FogAnalytic(WeatherModel):
         return height_profile(k, camera_height, rise, distance_m, self.scene.metres_per_unit)
 
     def prior(self, view: int) -> torch.Tensor | None:
-        """record_prior_weight · mean((ln β − ln β_θ)²) when the record prior is on, plus patches_weight · mean of the
+        """record_prior_weight · mean((ln β − ln β_θ)²) when the record prior is on (β_θ the photos' measure where
+        `hold_at` set one), plus patches_weight · mean of the
         view's squared patch log-scales when they learn; None when neither."""
         terms = []
         if self.use_record_prior and self.log_beta.requires_grad and self.config.record_prior_weight > 0:
-            terms.append(self.config.record_prior_weight * ((self.log_beta - self.record_log_beta) ** 2).mean())
+            terms.append(self.config.record_prior_weight * ((self.log_beta - self.prior_log_beta) ** 2).mean())
         if self.patch_log_scale.requires_grad and self.config.patches_weight > 0:
             terms.append(self.config.patches_weight * (self.patch_log_scale[view] ** 2).mean())
         return sum(terms) if terms else None
@@ -284,6 +301,8 @@ class FogAnalytic(WeatherModel):
             "record_beta_per_m": [round(float(b), 6) for b in self.record_log_beta.exp()],
             "airlight": [round(float(a), 4) for a in self.airlight.detach()],
         }
+        if self.measured_beta is not None:
+            out["measured_beta_per_m"] = round(self.measured_beta, 6)
         if self.layered:
             k = float(self.height_rate.detach()) / 100.0
             out["scale_height_m"] = None if k == 0 else round(1.0 / k, 1)

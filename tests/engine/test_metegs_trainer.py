@@ -162,7 +162,8 @@ def test_the_dark_channel_prior_holds_the_fog_where_blind_photos_cannot_measure_
     conditions = ConditionsConfig(precip_mm_h=0.0, visibility_m=300.0, metres_per_unit=10.0)  # t ≈ 0.5 far
     around = tiny_metegs(tmp_path / "around", conditions=conditions, max_steps=1, clean_supervision=False).setup()
     assert around.dehazing == [] and around.decisions["dark channel prior"].startswith("off: the views see a scene")
-    assert around.decisions["fog-analytic prior"].startswith("off: the views see a scene point from distances")
+    assert around.decisions["fog-analytic prior"].startswith("on (weight 0.1): the views see a scene point from")
+    assert "the photos measure β" in around.decisions["fog-analytic prior"]  # at the scene's points
     # in fog dense at the scene's depth the prior holds it there too: a scene without near-black patches biases the
     # veil it reads by J·t, small against 1 − t (the built-in scene in 200 m fog: 17.02 dB with it, 14.20 without)
     thick = replace(conditions, visibility_m=60.0)
@@ -232,6 +233,28 @@ def test_the_dark_channel_prior_holds_the_fog_where_blind_photos_cannot_measure_
         assert other.dehazing == [] and other.decisions["fog-analytic prior"].startswith("on (weight 0.1)")
         # beside clean references the patches learn too (the references measure the fog); with no measure, not
         assert other.decisions["fog-analytic patches"].startswith("on:" if name == "refs" else "off:")
+
+
+def test_blind_beta_starts_and_stays_at_the_photos_measure_at_the_scene_points(tmp_path):
+    """Blind, where the views see the scene's points from distances far apart, the photos' colours there measure β
+    (`fit_uniform_medium`): β starts at that measure, the prior holds it there (Gaussians free to take the haze in
+    let it drift: the instant-ngp fox in metegs's own 200 m fog, 16.78 dB with β free, 24.44 held at the measure)
+    and the layers still learn how it changes with height; with clean references β stays free."""
+    conditions = ConditionsConfig(precip_mm_h=0.0, visibility_m=300.0, metres_per_unit=10.0)
+    blind = tiny_metegs(tmp_path / "blind", conditions=conditions, max_steps=1, clean_supervision=False).setup()
+    fog = next(m for m in blind.weather_models if m.name == "fog-analytic")
+    measured = fog.measured_beta
+    assert measured is not None and f"the photos measure β {measured:.2e}/m" in blind.decisions["fog-analytic prior"]
+    assert fog.use_record_prior and torch.allclose(fog.log_beta.exp().mean(), torch.tensor(measured), rtol=0.05)
+    assert float(fog.prior(0).detach()) == 0.0
+    with torch.no_grad():
+        fog.log_beta += 1.0
+    assert float(fog.prior(0).detach()) > 0.0  # held near the measure, not the record
+    assert blind.decisions["fog-analytic layers"].startswith("on:") and fog.height_rate.requires_grad
+    assert fog.summary()["measured_beta_per_m"] == round(measured, 6)
+    refs = tiny_metegs(tmp_path / "refs", conditions=conditions, max_steps=1).setup()
+    assert refs.decisions["fog-analytic prior"].startswith("off: the views see a scene point from distances")
+    assert next(m for m in refs.weather_models if m.name == "fog-analytic").measured_beta is None
 
 
 def test_clean_views_look_into_the_airlight_where_the_scene_is_transparent(trained):
