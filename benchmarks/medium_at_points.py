@@ -7,9 +7,10 @@ see the points from distances far apart (a street walked down), I changes from v
 the photos' colours at the points' projections measure β, its fall with height and the airlight A with one unknown
 J per point. Training measures the same through the scene's Gaussians, which can take the haze in themselves
 (Gaussians near the cameras, colours that change with the view): on OpenSfM's Lund street under independent height
-fog, blind training let β fall to a third of the generator's while this fit comes within 10 %. Views that do not
-see a point (occlusion, a wall in between) and rain streaks over it are outliers of a robust loss. A diagnostic, not
-part of the method: held at this fit, blind MeteGS did not gain (docs/benchmark.md, the Lund street).
+fog, blind training let β fall to a third of the generator's while this fit comes within 10 %. Views in which another
+point hides a point are left out (`unoccluded`), rain streaks over it are outliers of a robust loss. Blind training
+measures a uniform medium the same way at its starting points (`fit_uniform_medium`, decision `fog-analytic prior`);
+this diagnostic also fits how β falls with height, by gradient steps, and compares it with the generator's.
 """
 
 from __future__ import annotations

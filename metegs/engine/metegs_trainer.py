@@ -8,6 +8,7 @@ Evaluation, renders and export use the clean branch only.
 
 from __future__ import annotations
 
+import functools
 import warnings
 from dataclasses import replace
 from pathlib import Path
@@ -58,7 +59,7 @@ against 10.37 under the independent family); from random points they clear float
 head, independent family: 15.58 dB with them, 15.11 without)."""
 
 MEASURED_POINTS = 2048
-"""Most starting points at which the photos' fog is measured (`_measure_medium`; evenly spread over the cloud)."""
+"""Most starting points at which the photos' fog is measured (`_measured_medium`; evenly spread over the cloud)."""
 
 MIN_MEASURED_POINTS = 100
 """Fewest points seen from distances `MEASURABLE_DISTANCE_SPREAD` times apart from which the photos' measure of the
@@ -374,29 +375,12 @@ class MeteGSTrainer(Trainer):
         alone is dense, blind training holds it by the dark-channel prior (`_decide_dark_channel`), training with
         clean references (or with that prior off) near the met record's. Blind under rain heavier than light through
         dense fog the record holds it wherever the views are (`_rain_through_dense_fog`). Elsewhere blind, where they
-        are, the photos' colours at the starting points measure it (`_measure_medium`), and the prior holds it there:
+        are, the photos' colours at the starting points measure it (`_measured_medium`), and the prior holds it there:
         left free, it drifts while the Gaussians take the haze in (the fox in metegs's own 200 m fog: from the exact
         0.0150/m to 0.011 within 1000 steps, 16.78 dB; held at the measure of 0.0155, 24.09)."""
         if not fog.log_beta.requires_grad:
             return
-        if self.random_init:  # random points fill the views' overlap and say nothing of where the scene lies
-            spread = None
-            seen = "the Gaussians start from random points, so how far apart the views see the scene is unknown"
-        elif self.swept_init:  # the fox under rain + fog, blind: 14.86 dB with β free, 18.30 with the prior
-            spread = None
-            seen = (
-                "the Gaussians start from a plane sweep of photos that the weather took SIFT's features from; as from "
-                "random points, how far apart the views see the scene is left unmeasured"
-            )
-        else:
-            spread = distance_spread(self.dataset.cameras[self.dataset.train_indices], self.model.means.detach())
-            seen = (
-                f"the views see a scene point from distances {'(unknown)' if spread is None else f'{spread:.2f}x'} "
-                f"apart (median)"
-            )
-        measurable = spread is not None and spread >= MEASURABLE_DISTANCE_SPREAD
-        if not measurable and spread is not None:
-            seen += f", under {MEASURABLE_DISTANCE_SPREAD}x"
+        measurable, seen = self._views_measure_medium
         dark = self._decide_dark_channel(fog, measurable, seen, self._dense_fog_alone())
         mode, beta = fog.config.record_prior, f"{float(fog.record_log_beta.exp().mean()):.2e}/m"
         flat = "off: where the photos cannot measure β they cannot tell how it varies"
@@ -413,12 +397,13 @@ class MeteGSTrainer(Trainer):
                 f"the photos' measure of β, so β stays near the record's {beta}"
             )
             flat = "off: the rain that drowns the photos' measure of β drowns how it changes with height too"
-        elif measurable and not self.use_clean and (fit := self._measure_medium(fog)) is not None:
+        elif measurable and not self.use_clean and (fit := self._measured_medium) is not None:
             fog.hold_at(fit.beta_per_m)
             fog.use_record_prior = True
             why = (
                 f"{seen}: the photos measure β {fit.beta_per_m:.2e}/m at {fit.points} of the scene's points (the "
-                f"record's {beta}); β starts there and stays near it, as Gaussians free to take the haze in cannot "
+                f"record's {beta}; a uniform medium explains {fit.explained:.0%} of the colour differences that clear "
+                "air leaves there); β starts there and stays near it, as Gaussians free to take the haze in cannot "
                 "measure it"
             )
         elif measurable:
@@ -447,12 +432,35 @@ class MeteGSTrainer(Trainer):
             g = fog.patch_log_scale.shape
             self.decide(f"{name} patches", f"on: per view, a {g[2]}x{g[1]} grid scales the optical depth")
 
-    def _measure_medium(self, fog: FogAnalytic) -> MediumFit | None:
+    @functools.cached_property
+    def _views_measure_medium(self) -> tuple[bool, str]:
+        """Whether the views see the Gaussians' starting points from distances far enough apart
+        (`MEASURABLE_DISTANCE_SPREAD`) for the photos to measure a medium, and what they see in words."""
+        if self.random_init:  # random points fill the views' overlap and say nothing of where the scene lies
+            return False, "the Gaussians start from random points, so how far apart the views see the scene is unknown"
+        if self.swept_init:  # the fox under rain + fog, blind: 14.86 dB with β free, 18.30 with the prior
+            return False, (
+                "the Gaussians start from a plane sweep of photos that the weather took SIFT's features from; as from "
+                "random points, how far apart the views see the scene is left unmeasured"
+            )
+        spread = distance_spread(self.dataset.cameras[self.dataset.train_indices], self.model.means.detach())
+        if spread is None:
+            return False, "the views see a scene point from distances (unknown) apart (median)"
+        seen = f"the views see a scene point from distances {spread:.2f}x apart (median)"
+        if spread < MEASURABLE_DISTANCE_SPREAD:
+            return False, f"{seen}, under {MEASURABLE_DISTANCE_SPREAD}x"
+        return True, seen
+
+    @functools.cached_property
+    def _measured_medium(self) -> MediumFit | None:
         """The uniform medium the training photos show at the Gaussians' starting points seen from distances
-        `MEASURABLE_DISTANCE_SPREAD` times apart (`fit_uniform_medium`), or None where fewer than `MIN_MEASURED_POINTS`
-        are. The others show one veil in every view, which says nothing of β but through the airlight's model: the
-        built-in scene's far hills, where the fog thins with height, read 3.2e-3/m with them and 1.27e-2 without (the
-        independent family's 1.3e-2 at the ground)."""
+        `MEASURABLE_DISTANCE_SPREAD` times apart, in the views that no other starting point hides them from
+        (`fit_uniform_medium`), or None where fewer than `MIN_MEASURED_POINTS` are. Points seen from about one distance
+        show one veil in every view, which says nothing of β but through the airlight's model: the built-in scene's far
+        hills, where the fog thins with height, read 3.2e-3/m with them and 1.27e-2 without (the independent family's
+        1.3e-2 at the ground)."""
+        from metegs.weather.conditions import scene_metres_per_unit
+
         ds = self.dataset
         views = list(ds.train_indices)
         with self.status("measuring the fog at the scene's points"):
@@ -461,7 +469,7 @@ class MeteGSTrainer(Trainer):
                 [ds.images[i] for i in views],
                 self.model.means.detach(),
                 torch.as_tensor(self.scene.up),
-                fog.scene.metres_per_unit,
+                scene_metres_per_unit(self.config.conditions, self.scene.metric_scale),
                 max_points=MEASURED_POINTS,
             ).spread(MEASURABLE_DISTANCE_SPREAD)
             if len(torch.unique(obs.point)) < MIN_MEASURED_POINTS:

@@ -245,6 +245,7 @@ def test_blind_beta_starts_and_stays_at_the_photos_measure_at_the_scene_points(t
     fog = next(m for m in blind.weather_models if m.name == "fog-analytic")
     measured = fog.measured_beta
     assert measured is not None and f"the photos measure β {measured:.2e}/m" in blind.decisions["fog-analytic prior"]
+    assert f"explains {blind._measured_medium.explained:.0%} of" in blind.decisions["fog-analytic prior"]
     assert fog.use_record_prior and torch.allclose(fog.log_beta.exp().mean(), torch.tensor(measured), rtol=0.05)
     assert float(fog.prior(0).detach()) == 0.0
     with torch.no_grad():

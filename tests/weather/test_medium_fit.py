@@ -4,8 +4,15 @@ from __future__ import annotations
 
 import torch
 
+from metegs.cameras import Cameras
 from metegs.weather.fog_analytic import height_profile
-from metegs.weather.medium_fit import PointObservations, fit_medium, fit_uniform_medium
+from metegs.weather.medium_fit import (
+    PointObservations,
+    fit_medium,
+    fit_uniform_medium,
+    point_observations,
+    unoccluded,
+)
 
 
 def test_the_fit_recovers_a_layered_medium_from_point_colours():
@@ -51,14 +58,16 @@ def uniform_observations(beta: float, seed: int = 0) -> tuple[PointObservations,
 
 def test_the_closed_form_fit_recovers_a_uniform_medium_and_reads_clear_air_as_none():
     """`fit_uniform_medium` (no gradient steps) finds β within 5 % and A within 0.03; through clear air it finds
-    β at the bottom of its range, not the clean colours' spread read as fog."""
+    β at the bottom of its range, not the clean colours' spread read as fog, and a medium that explains little there."""
     obs, airlight = uniform_observations(0.012)
     fit = fit_uniform_medium(obs)
     assert abs(fit.beta_per_m - 0.012) < 0.05 * 0.012
     assert max(abs(a - b) for a, b in zip(fit.airlight, airlight.tolist(), strict=True)) < 0.03
     assert (fit.observations, fit.points, fit.height_rate) == (len(obs), 300, 0.0)
     clear, _ = uniform_observations(0.0, seed=1)
-    assert fit_uniform_medium(clear).beta_per_m < 5e-4
+    clear_fit = fit_uniform_medium(clear)
+    assert clear_fit.beta_per_m < 5e-4
+    assert clear_fit.explained < 0.05 < 0.3 < fit.explained  # a medium explains the colours only where there is one
 
 
 def test_points_seen_from_one_distance_are_left_out_of_the_measure():
@@ -84,3 +93,36 @@ def test_points_seen_from_one_distance_are_left_out_of_the_measure():
     kept = obs.spread(1.5)
     assert (len(kept), len(torch.unique(kept.point))) == (len(near), 300)
     assert abs(fit_uniform_medium(kept).beta_per_m - 0.012) < 0.05 * 0.012
+
+
+def test_points_behind_a_nearer_wall_of_points_are_hidden():
+    """400 far points (depth 10) over an 80×60 frame behind a wall of 400 points (depth 2) over its left half: the far
+    points more than two cells left of the wall's edge are hidden, those two cells right of it and the wall are seen."""
+    g = torch.Generator().manual_seed(0)
+    far_x, far_y = 80.0 * torch.rand(400, generator=g), 60.0 * torch.rand(400, generator=g)
+    wall_x, wall_y = 40.0 * torch.rand(400, generator=g), 60.0 * torch.rand(400, generator=g)
+    z = torch.cat([torch.full((400,), 10.0), torch.full((400,), 2.0)])
+    seen = unoccluded(torch.cat([far_x, wall_x]), torch.cat([far_y, wall_y]), z, 80, 60)
+    far_seen, margin = seen[:400], 2 * (80 * 60 / 800) ** 0.5
+    assert not far_seen[far_x < 40 - margin].any()
+    assert far_seen[far_x > 40 + margin].all()
+    assert seen[400:].all()
+
+
+def test_a_view_in_which_a_nearer_patch_hides_a_point_does_not_observe_it():
+    """A far plane of points (z 50) and a near patch (z 10) in front of its centre, seen by a camera at the origin and
+    one 8 units to the side: the far plane's centre is observed by the second camera alone, the patch by both."""
+    ys, xs = torch.meshgrid(torch.arange(-45.0, 46.0, 2.0), torch.arange(-60.0, 61.0, 2.0), indexing="ij")
+    plane = torch.stack([xs.flatten(), ys.flatten(), torch.full((xs.numel(),), 50.0)], dim=1)
+    ys, xs = torch.meshgrid(torch.arange(-3.0, 3.01, 0.25), torch.arange(-3.0, 3.01, 0.25), indexing="ij")
+    patch = torch.stack([xs.flatten(), ys.flatten(), torch.full((xs.numel(),), 10.0)], dim=1)
+    points = torch.cat([plane, patch])
+    poses = torch.eye(4).repeat(2, 1, 1)
+    poses[1, 0, 3] = 8.0
+    cameras = Cameras.create(poses, 40.0, 40.0, 40.0, 30.0, 80, 60)
+    obs = point_observations(cameras, [torch.zeros(60, 80, 3)] * 2, points, torch.tensor([0.0, -1.0, 0.0]), 1.0)
+    centre = int(((plane - torch.tensor([0.0, 0.0, 50.0])).norm(dim=1)).argmin())
+    seen_from = obs.distance_m[obs.point == centre]
+    assert torch.allclose(seen_from, (plane[centre] - poses[1, :3, 3]).norm()[None])
+    patch_centre = len(plane) + int(patch.norm(dim=1).argmin())
+    assert (obs.point == patch_centre).sum() == 2
