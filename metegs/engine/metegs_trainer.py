@@ -65,6 +65,12 @@ MIN_MEASURED_POINTS = 100
 """Fewest points seen from distances `MEASURABLE_DISTANCE_SPREAD` times apart from which the photos' measure of the
 fog is trusted."""
 
+MIN_MEDIUM_EXPLAINED = 0.05
+"""Share of clear air's robust loss at the scene's points that a uniform medium must explain (`MediumFit.explained`)
+for blind training to hold β at that measure; under it the veil is too thin to measure there and β learns in
+training. Fog: 14-49 % (the built-in scene, the Lund street, the fox); thin veils 0.4-2.4 %, whose measure missed
+(the fox's rain veil: 1.63e-3/m against 2.45e-3, 25.30 dB held there, 29.70 learnt in training)."""
+
 PERCEPTUAL_CACHE_MB = 512
 """Largest memory the clean references' perceptual features may take when cached for the whole run."""
 
@@ -375,9 +381,10 @@ class MeteGSTrainer(Trainer):
         alone is dense, blind training holds it by the dark-channel prior (`_decide_dark_channel`), training with
         clean references (or with that prior off) near the met record's. Blind under rain heavier than light through
         dense fog the record holds it wherever the views are (`_rain_through_dense_fog`). Elsewhere blind, where they
-        are, the photos' colours at the starting points measure it (`_measured_medium`), and the prior holds it there:
+        are, the photos' colours at the starting points measure it (`_measured_medium`), and where that measure explains
+        enough of them (`MIN_MEDIUM_EXPLAINED`) the prior holds it there:
         left free, it drifts while the Gaussians take the haze in (the fox in metegs's own 200 m fog: from the exact
-        0.0150/m to 0.011 within 1000 steps, 16.78 dB; held at the measure of 0.0155, 24.09)."""
+        0.0150/m to 0.011 within 1000 steps, 16.78 dB; held at the measure of 0.0138, 22.50)."""
         if not fog.log_beta.requires_grad:
             return
         measurable, seen = self._views_measure_medium
@@ -397,7 +404,7 @@ class MeteGSTrainer(Trainer):
                 f"the photos' measure of β, so β stays near the record's {beta}"
             )
             flat = "off: the rain that drowns the photos' measure of β drowns how it changes with height too"
-        elif measurable and not self.use_clean and (fit := self._measured_medium) is not None:
+        elif measurable and (fit := self._held_measure()) is not None:
             fog.hold_at(fit.beta_per_m)
             fog.use_record_prior = True
             why = (
@@ -409,6 +416,12 @@ class MeteGSTrainer(Trainer):
         elif measurable:
             fog.use_record_prior = False
             why = f"{seen}: the photos measure β"
+            if not self.use_clean and (fit := self._measured_medium) is not None:
+                why += (
+                    f" in training: at the scene's points a uniform medium explains {fit.explained:.1%} of the colour "
+                    f"differences that clear air leaves, under {MIN_MEDIUM_EXPLAINED:.0%}, too little to hold β at "
+                    f"their {fit.beta_per_m:.2e}/m"
+                )
         else:
             fog.use_record_prior = True
             why = f"{seen}: the photos cannot tell fog from a hazy scene, so β stays near the record's {beta}"
@@ -450,6 +463,13 @@ class MeteGSTrainer(Trainer):
         if spread < MEASURABLE_DISTANCE_SPREAD:
             return False, f"{seen}, under {MEASURABLE_DISTANCE_SPREAD}x"
         return True, seen
+
+    def _held_measure(self) -> MediumFit | None:
+        """Blind, the photos' measure at the scene's points (`_measured_medium`) where it explains at least
+        `MIN_MEDIUM_EXPLAINED`, else None."""
+        if self.use_clean or (fit := self._measured_medium) is None or fit.explained < MIN_MEDIUM_EXPLAINED:
+            return None
+        return fit
 
     @functools.cached_property
     def _measured_medium(self) -> MediumFit | None:
