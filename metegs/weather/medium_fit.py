@@ -7,7 +7,7 @@ measures the same through the scene's Gaussians, which can take the haze in them
 cameras, colours that change with the view); this fit has no such freedom. Rain streaks over a point are outliers of
 its robust loss. Views in which another point hides it are left out (`unoccluded`): a nearer, darker occluder reads
 as fog towards a dark airlight (the built-in scene's clean photos read 8.3e-3/m at its spread points with them,
-1.35e-3 without; its synthetic depth maps show that 47 % of all those views do not see their point).
+1.2e-3 without; its synthetic depth maps show that 47 % of all those views do not see their point).
 """
 
 from __future__ import annotations
@@ -74,7 +74,7 @@ class MediumFit:
     observations: int
     points: int
     explained: float = float("nan")
-    """Share of the robust loss of clear air (each point's colour alone) that the medium explains: 0.4-0.5 % on the
+    """Share of the robust loss of clear air (each point's colour alone) that the medium explains: 0.4-0.6 % on the
     built-in scene's clean or rain-streaked photos, 36-49 % in its fog, but also only 1.4-2.4 % on the fox's photos
     under a real thin veil, so it cannot tell that there is none (`fit_uniform_medium`; NaN: not measured)."""
 
