@@ -170,13 +170,19 @@ class Cameras:
         """[N, 3] camera centres in world coordinates."""
         return self.camera_to_worlds[:, :3, 3]
 
-    def sees(self, points: torch.Tensor) -> torch.Tensor:
-        """Which views see each point inside their image and in front. points [P, 3] -> [C, P] bool."""
+    def project(self, points: torch.Tensor) -> torch.Tensor:
+        """Pixel position and depth of points [P, 3] in every view -> [C, P, 3] (u, v, z; u and v hold no meaning
+        where z ≤ 0)."""
         w2c = self.world_to_cameras()
         p = torch.einsum("cij,pj->cpi", w2c[:, :3, :3], points) + w2c[:, None, :3, 3]
         z = p[..., 2]
         u = self.fx[:, None] * p[..., 0] / z.clamp_min(1e-6) + self.cx[:, None]
         v = self.fy[:, None] * p[..., 1] / z.clamp_min(1e-6) + self.cy[:, None]
+        return torch.stack([u, v, z], dim=-1)
+
+    def sees(self, points: torch.Tensor) -> torch.Tensor:
+        """Which views see each point inside their image and in front. points [P, 3] -> [C, P] bool."""
+        u, v, z = self.project(points).unbind(-1)
         return (z > 1e-3) & (u >= 0) & (u < self.width[:, None]) & (v >= 0) & (v < self.height[:, None])
 
     def resized(self, width: int, height: int) -> Cameras:

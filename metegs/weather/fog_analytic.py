@@ -8,9 +8,10 @@ channel comes from θ_fog (visibility by the 5 % rule, minus the rain's share, p
 distance (forward-facing captures), a hazy scene under less fog fits the photos as well as the true fog over the
 clean scene, and a free β drifts down while the scene takes the haze in: there (``record_prior`` auto, decided by
 the trainer) a prior holds ln β near θ's; where the distances differ across views the photos measure β: beside
-clean references it stays free, blind it starts at, and the prior holds it near, the photos' measure at the scene's
-points (`hold_at`, `metegs.weather.medium_fit`), since there too the scene can take the haze in; unless heavy rain
-falls through dense fog: the light it adds drowns that measure, and θ's β is held.
+clean references it stays free; blind, where fog explains the photos' colours at the scene's points, it starts at,
+and the prior holds it near, their measure there (`hold_at`, `metegs.weather.medium_fit`), since there too the scene
+can take the haze in; unless heavy rain falls through dense fog: the light it adds drowns that measure, and θ's β is
+held.
 
 Where the photos measure the medium (the prior off), the fog also learns how it thins with height above the
 ground, starting uniform: β(x) = β·exp(−k·h(x)), h the height in metres over the cameras' mean and k learnable, so

@@ -72,6 +72,14 @@ facing captures: 1.07-1.26 on the Ethiopian head) a hazy scene under thinner fog
 true fog; the built-in scene's surrounding views see points 1.8-2.2 times farther in one view than in another."""
 
 
+def nearest_and_farthest(point: torch.Tensor, distance: torch.Tensor, points: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The smallest and largest ``distance`` [N] over each point's observations (``point`` [N], indices below
+    ``points``) -> (near [points], far [points]); inf and 0 for a point not observed."""
+    near = torch.full((points,), float("inf")).scatter_reduce(0, point, distance, "amin")
+    far = torch.zeros(points).scatter_reduce(0, point, distance, "amax")
+    return near, far
+
+
 def distance_spread(cameras: Cameras, points: torch.Tensor | None, max_points: int = 4096) -> float | None:
     """Median over scene points seen by at least two views of (largest / smallest camera distance among those
     views), or None without such points. cameras: the views; points [P, 3] (at most ``max_points`` used)."""
@@ -82,8 +90,8 @@ def distance_spread(cameras: Cameras, points: torch.Tensor | None, max_points: i
     cameras = cameras.to("cpu")
     seen = cameras.sees(pts)  # [C, P]
     dist = (pts[None] - cameras.centers[:, None]).norm(dim=-1)
-    far = torch.where(seen, dist, torch.zeros_like(dist)).amax(0)
-    near = torch.where(seen, dist, torch.full_like(dist, float("inf"))).amin(0)
+    view, point = seen.nonzero(as_tuple=True)
+    near, far = nearest_and_farthest(point, dist[view, point], len(pts))
     twice = seen.sum(0) >= 2
     if not twice.any():
         return None

@@ -20,6 +20,7 @@ import torch.nn.functional as F
 
 from metegs.cameras import Cameras
 from metegs.weather.fog_analytic import height_profile
+from metegs.weather.medium import nearest_and_farthest
 
 FIT_STEPS = 1500
 """Adam steps of the fit."""
@@ -56,9 +57,7 @@ class PointObservations:
         a point seen from about one distance shows one veil in every view, which its own colour explains at any β."""
         if len(self) == 0:
             return self
-        points = int(self.point.max()) + 1
-        near = torch.full((points,), float("inf")).scatter_reduce(0, self.point, self.distance_m, "amin")
-        far = torch.zeros(points).scatter_reduce(0, self.point, self.distance_m, "amax")
+        near, far = nearest_and_farthest(self.point, self.distance_m, int(self.point.max()) + 1)
         keep = (far >= min_ratio * near)[self.point]
         return PointObservations(*(getattr(self, f.name)[keep] for f in fields(self)))
 
@@ -134,13 +133,9 @@ def point_observations(
     up = (up.float() / up.float().norm()).cpu()
     centres = cameras.centers.float()
     reference = (centres @ up).mean()
-    w2c = cameras.world_to_cameras().float()
     rows: dict[str, list[torch.Tensor]] = {k: [] for k in ("point", "colour", "distance", "height", "rise")}
     for v, image in enumerate(images):
-        cam = cloud @ w2c[v, :3, :3].T + w2c[v, :3, 3]
-        z = cam[:, 2]
-        x = cam[:, 0] / z.clamp_min(1e-6) * cameras.fx[v] + cameras.cx[v]
-        y = cam[:, 1] / z.clamp_min(1e-6) * cameras.fy[v] + cameras.cy[v]
+        x, y, z = cameras[v].project(cloud)[0].unbind(-1)
         h, w = image.shape[:2]
         inside = (z > 1e-6) & (x >= 0) & (x < w) & (y >= 0) & (y < h)
         seen = torch.zeros(len(cloud), dtype=torch.bool)
