@@ -112,7 +112,8 @@ class MeteGSConfig(TrainConfig):
     """Trimmed photometric loss of the weather branch: pixels no model explains in a view are left out of it."""
     min_photo_veil: Annotated[float, Range(0.0, 1.0)] = VISIBLE_CONTRAST_LOSS
     """A medium the record calls for (fog, rain veil) is on only where the training photos' darkest patches show at
-    least this share of veil (`photo_veil`: clear photos 0.001-0.014; 0: the record alone decides)."""
+    least this share of veil (`photo_veil`: clear photos 0.001-0.014) and, for the rain's veil alone, the scene's
+    points show it too (`veil_evidence`); 0: the record alone decides."""
     dark_channel: DarkChannelPriorConfig = field(default_factory=DarkChannelPriorConfig)
     """Blind mode: the photos dehazed by the learned medium keep the dark channel of clear views (sets β)."""
     compare_baseline: bool = True

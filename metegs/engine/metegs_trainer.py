@@ -49,7 +49,13 @@ from metegs.weather.medium import (
     typical_depth_m,
     veil_fraction,
 )
-from metegs.weather.medium_fit import MediumFit, fit_uniform_medium, point_observations
+from metegs.weather.medium_fit import (
+    MediumFit,
+    PointObservations,
+    fit_uniform_medium,
+    point_observations,
+    veil_evidence,
+)
 
 DENSE_OPTICAL_DEPTH = LN20 / 3
 """Optical depth β·d above which fog is dense at depth d: its visibility (the meteorological optical range, where
@@ -70,6 +76,16 @@ MIN_MEDIUM_EXPLAINED = 0.05
 for blind training to hold β at that measure; under it the veil is too thin to measure there and β learns in
 training. Fog: 14-49 % (the built-in scene, the Lund street, the fox); thin veils 0.4-2.4 %, whose measure missed
 (the fox's rain veil: 1.63e-3/m against 2.45e-3, 25.30 dB held there, 29.70 learnt in training)."""
+
+MIN_VEIL_Z = 2.0
+"""How many standard errors better than clear air the rain's veil must explain the colours at the scene's points
+(`veil_evidence`) for a medium to model it where the record gives no visibility: metegs's own heavy rain, 7.0 on the
+fox and 31 on the built-in scene; streaks without a veil −0.2 to 4.8 (the photos' exposures differing), clear photos −16 to 2.9."""
+
+MIN_AIRLIGHT_OUTSHINES = 0.9
+"""Share of the colours at the scene's points that the rain's veil's fitted airlight must outshine, as scattered
+daylight outshines nearly every surface it veils: 0.98-1.0 under metegs's own heavy rain (the built-in scene, the
+fox); 0.56-0.74 where there is no veil and a fitted one takes the scene's middle grey for airlight."""
 
 PERCEPTUAL_CACHE_MB = 512
 """Largest memory the clean references' perceptual features may take when cached for the whole run."""
@@ -269,6 +285,33 @@ class MeteGSTrainer(Trainer):
         """Median `photo_veil` of the `_sampled_photos` under ``airlight`` [3]."""
         return float(np.median([photo_veil(photo, airlight) for photo in self._sampled_photos()]))
 
+    def _rain_veil_unseen(self, beta: float) -> str | None:
+        """Blind, where the record gives no visibility, so that its medium of ``beta`` (1/m over clear air) is the
+        rain's veil, and the views see the scene's points from distances far enough apart (`_views_measure_medium`):
+        why the photos show no such veil, else None. A veil must explain the colours at the points better than clear
+        air by `MIN_VEIL_Z` standard errors, under an airlight brighter than `MIN_AIRLIGHT_OUTSHINES` of them
+        (`veil_evidence`): without a veil, a fitted one takes the scene's middle grey for airlight. Streaks drawn
+        without a veil fooled the dark channel on the built-in scene (its grey ground reads as 10 % of veil in clear
+        air), and a learnt veil cost 8 dB there."""
+        theta = self.weather_theta(self.scene)
+        if self.use_clean or theta.fog.visibility_m is not None or not self._views_measure_medium[0]:
+            return None
+        if (obs := self._medium_observations) is None:
+            return None
+        with self.status("testing the rain's veil at the scene's points"):
+            evidence = veil_evidence(obs, beta)
+        if evidence.z >= MIN_VEIL_Z and evidence.brighter >= MIN_AIRLIGHT_OUTSHINES:
+            return None
+        weak = f", under {MIN_VEIL_Z:g}" if evidence.z < MIN_VEIL_Z else ""
+        grey = f", under {MIN_AIRLIGHT_OUTSHINES:.0%}" if evidence.brighter < MIN_AIRLIGHT_OUTSHINES else ""
+        return (
+            f"the record gives no visibility, so its β {beta:.2e}/m over clear air is the veil of "
+            f"{rain_phrase(theta.rain)}; at {len(torch.unique(obs.point))} of the scene's points "
+            f"({self._views_measure_medium[1]}) that veil explains {evidence.explained:.1%} of the colour differences "
+            f"that clear air leaves (z {evidence.z:.1f}{weak}) under an airlight brighter than {evidence.brighter:.0%} "
+            f"of them{grey}: the photos show no veil of the rain"
+        )
+
     def _build_weather(self) -> list[WeatherModel]:
         from metegs.weather.conditions import describe, scene_metres_per_unit
 
@@ -312,6 +355,9 @@ class MeteGSTrainer(Trainer):
                         f"of veil, under {c.min_photo_veil:.0%}: they show no medium (--min-photo-veil 0: the record "
                         "decides)",
                     )
+                    continue
+                if c.min_photo_veil > 0 and (unseen := self._rain_veil_unseen(beta)) is not None:
+                    self.decide(f"weather {name}", f"off: {unseen} (--min-photo-veil 0: the record decides)")
                     continue
                 if shown is not None:
                     shown_veil[name] = f": the photos' darkest patches show {shown:.1%} of veil"
@@ -472,18 +518,15 @@ class MeteGSTrainer(Trainer):
         return fit
 
     @functools.cached_property
-    def _measured_medium(self) -> MediumFit | None:
-        """The uniform medium the training photos show at the Gaussians' starting points seen from distances
+    def _medium_observations(self) -> PointObservations | None:
+        """The training photos' colours at the Gaussians' starting points seen from distances
         `MEASURABLE_DISTANCE_SPREAD` times apart, in the views that no other starting point hides them from
-        (`fit_uniform_medium`), or None where fewer than `MIN_MEASURED_POINTS` are. Points seen from about one distance
-        show one veil in every view, which says nothing of β but through the airlight's model: the built-in scene's far
-        hills, where the fog thins with height, read 3.2e-3/m with them and 1.27e-2 without (the independent family's
-        1.3e-2 at the ground)."""
+        (`point_observations`), or None where fewer than `MIN_MEASURED_POINTS` points are."""
         from metegs.weather.conditions import scene_metres_per_unit
 
         ds = self.dataset
         views = list(ds.train_indices)
-        with self.status("measuring the fog at the scene's points"):
+        with self.status("reading the photos' colours at the scene's points"):
             obs = point_observations(
                 ds.cameras[views],
                 [ds.images[i] for i in views],
@@ -492,8 +535,17 @@ class MeteGSTrainer(Trainer):
                 scene_metres_per_unit(self.config.conditions, self.scene.metric_scale),
                 max_points=MEASURED_POINTS,
             ).spread(MEASURABLE_DISTANCE_SPREAD)
-            if len(torch.unique(obs.point)) < MIN_MEASURED_POINTS:
-                return None
+        return obs if len(torch.unique(obs.point)) >= MIN_MEASURED_POINTS else None
+
+    @functools.cached_property
+    def _measured_medium(self) -> MediumFit | None:
+        """The uniform medium that the `_medium_observations` show (`fit_uniform_medium`), or None where there are too
+        few. Points seen from about one distance show one veil in every view, which says nothing of β but through the
+        airlight's model: the built-in scene's far hills, where the fog thins with height, read 3.2e-3/m with them and
+        1.27e-2 without (the independent family's 1.3e-2 at the ground)."""
+        if (obs := self._medium_observations) is None:
+            return None
+        with self.status("measuring the fog at the scene's points"):
             return fit_uniform_medium(obs)
 
     def _dense_medium(self) -> str | None:

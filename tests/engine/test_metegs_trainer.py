@@ -10,7 +10,11 @@ import torch
 from metegs.data.config import DatasetConfig, SyntheticSceneConfig
 from metegs.densify.adc import ADCConfig
 from metegs.engine.metegs_config import MeteGSConfig
-from metegs.engine.metegs_trainer import DENSE_OPTICAL_DEPTH, MIN_MEDIUM_EXPLAINED
+from metegs.engine.metegs_trainer import (
+    DENSE_OPTICAL_DEPTH,
+    MIN_AIRLIGHT_OUTSHINES,
+    MIN_MEDIUM_EXPLAINED,
+)
 from metegs.losses.photometric import PhotometricLossConfig
 from metegs.models.gtn import GTNConfig
 from metegs.render import RenderSettings
@@ -269,6 +273,27 @@ def test_blind_beta_learns_in_training_where_the_points_measure_too_thin_a_veil(
     fog = next(m for m in clear.weather_models if m.name == "fog-analytic")
     assert not fog.use_record_prior and fog.measured_beta is None and fog.log_beta.requires_grad
     assert "too little to hold β" in clear.decisions["fog-analytic prior"]
+
+
+def test_blind_the_medium_stays_off_where_the_photos_show_no_veil_of_the_rain(tmp_path):
+    """Heavy rain and no visibility in the record: its medium is the rain's veil. Photos without that veil (the clean
+    views here; streaks drawn without one cost 8 dB on the built-in scene with a learnt veil) leave it off, as its β
+    explains the colours at the scene's points little better than clear air, under an airlight no brighter than the
+    scene's middle grey (`veil_evidence`); metegs's own heavy rain,
+    which draws the veil, keeps it on, and so do clean references, which hold the scene themselves."""
+    conditions = ConditionsConfig(precip_mm_h=22.0, visibility_m=None, metres_per_unit=10.0)
+    clear = tiny_metegs(tmp_path / "clear", conditions=conditions, max_steps=1, clean_supervision=False, degrade="off")
+    clear = clear.setup()
+    assert "fog-analytic" not in {m.name for m in clear.weather_models}
+    decision = clear.decisions["weather fog-analytic"]
+    assert decision.startswith("off: the record gives no visibility") and "show no veil of the rain" in decision
+    assert f"under {MIN_AIRLIGHT_OUTSHINES:.0%}" in decision  # the scene's own middle grey read as a veil
+    rain = tiny_metegs(tmp_path / "rain", conditions=conditions, max_steps=1, clean_supervision=False, degrade="rain")
+    rain = rain.setup()
+    assert "fog-analytic" in {m.name for m in rain.weather_models}
+    assert rain.decisions["weather fog-analytic"].startswith("on")
+    refs = tiny_metegs(tmp_path / "refs", conditions=conditions, max_steps=1, degrade="off").setup()
+    assert "fog-analytic" in {m.name for m in refs.weather_models}
 
 
 def test_clean_views_look_into_the_airlight_where_the_scene_is_transparent(trained):

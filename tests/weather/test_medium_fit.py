@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 
 from metegs.cameras import Cameras
+from metegs.engine.metegs_trainer import MIN_AIRLIGHT_OUTSHINES, MIN_VEIL_Z
 from metegs.weather.fog_analytic import height_profile
 from metegs.weather.medium_fit import (
     PointObservations,
@@ -12,6 +13,7 @@ from metegs.weather.medium_fit import (
     fit_uniform_medium,
     point_observations,
     unoccluded,
+    veil_evidence,
 )
 
 
@@ -68,6 +70,37 @@ def test_the_closed_form_fit_recovers_a_uniform_medium_and_reads_clear_air_as_no
     clear_fit = fit_uniform_medium(clear)
     assert clear_fit.beta_per_m < 5e-4
     assert clear_fit.explained < 0.05 < 0.3 < fit.explained  # a medium explains the colours only where there is one
+
+
+def astuple_rest(obs: PointObservations) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The geometry of ``obs``: (distance_m, camera_height_m, rise)."""
+    return obs.distance_m, obs.camera_height_m, obs.rise
+
+
+def test_the_veil_of_a_given_beta_is_told_from_clear_air():
+    """`veil_evidence` at a rain's veil of 2.5e-3/m: photos through that veil, or one twice as thick, explain it many
+    standard errors better than clear air under a bright airlight; clear photos, or photos whose colours vary from
+    view to view without regard to distance, do not reach `MIN_VEIL_Z`; colours that far views mix towards the
+    scene's middle grey do, but under an airlight that outshines too few of them."""
+    for beta in (0.0025, 0.005):
+        veiled, _ = uniform_observations(beta)
+        evidence = veil_evidence(veiled, 0.0025)
+        assert evidence.z > 2 * MIN_VEIL_Z and evidence.explained > 0.05
+        assert evidence.brighter > MIN_AIRLIGHT_OUTSHINES
+    clear, _ = uniform_observations(0.0, seed=1)
+    evidence = veil_evidence(clear, 0.0025)
+    assert evidence.z < MIN_VEIL_Z and evidence.explained < 0.0
+    g = torch.Generator().manual_seed(3)
+    noisy = PointObservations(
+        clear.point,
+        (clear.colour + 0.03 * torch.randn(clear.colour.shape, generator=g)).clamp(0.0, 1.0),
+        *astuple_rest(clear),
+    )
+    assert veil_evidence(noisy, 0.0025).z < MIN_VEIL_Z
+    t = torch.exp(-0.0025 * clear.distance_m)[:, None]
+    mixed = clear.colour * t + clear.colour.mean(0) * (1 - t)
+    evidence = veil_evidence(PointObservations(clear.point, mixed, *astuple_rest(clear)), 0.0025)
+    assert evidence.z > MIN_VEIL_Z and evidence.brighter < MIN_AIRLIGHT_OUTSHINES
 
 
 def test_points_seen_from_one_distance_are_left_out_of_the_measure():
