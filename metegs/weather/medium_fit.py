@@ -250,9 +250,9 @@ def veil_evidence(obs: PointObservations, beta_per_m: float, iterations: int = 3
     gain = torch.zeros(points, dtype=torch.float64).index_add_(0, obs.point, clear - veiled)
     gain = gain[torch.unique(obs.point)]
     spread = math.sqrt(len(gain)) * float(gain.std()) if len(gain) > 1 else 0.0
-    total = float(gain.sum())
+    total, clear_total = float(gain.sum()), float(clear.sum())
     return VeilEvidence(
-        explained=total / float(clear.sum()) if float(clear.sum()) > 0 else 0.0,
+        explained=total / clear_total if clear_total > 0 else 0.0,
         z=total / spread if spread > 0 else 0.0,
         brighter=float((obs.colour.mean(-1) < float(airlight.mean())).float().mean()),
     )
