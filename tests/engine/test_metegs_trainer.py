@@ -280,7 +280,8 @@ def test_blind_the_medium_stays_off_where_the_photos_show_no_veil_of_the_rain(tm
     views here; streaks drawn without one cost 8 dB on the built-in scene with a learnt veil) leave it off, as its β
     explains the colours at the scene's points little better than clear air, under an airlight no brighter than the
     scene's middle grey (`veil_evidence`); metegs's own heavy rain,
-    which draws the veil, keeps it on, and so do clean references, which hold the scene themselves."""
+    which draws the veil, keeps it on, β learning in training (the points' measure of so thin a veil reads 1.7x over),
+    and so do clean references, which hold the scene themselves."""
     conditions = ConditionsConfig(precip_mm_h=22.0, visibility_m=None, metres_per_unit=10.0)
     clear = tiny_metegs(tmp_path / "clear", conditions=conditions, max_steps=1, clean_supervision=False, degrade="off")
     clear = clear.setup()
@@ -292,6 +293,9 @@ def test_blind_the_medium_stays_off_where_the_photos_show_no_veil_of_the_rain(tm
     rain = rain.setup()
     assert "fog-analytic" in {m.name for m in rain.weather_models}
     assert rain.decisions["weather fog-analytic"].startswith("on")
+    fog = next(m for m in rain.weather_models if m.name == "fog-analytic")
+    assert fog.measured_beta is None and fog.log_beta.requires_grad  # a veil that thin learns in training
+    assert "too thin for the points' measure" in rain.decisions["fog-analytic prior"]
     refs = tiny_metegs(tmp_path / "refs", conditions=conditions, max_steps=1, degrade="off").setup()
     assert "fog-analytic" in {m.name for m in refs.weather_models}
 
