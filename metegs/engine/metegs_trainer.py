@@ -80,7 +80,8 @@ training. Fog: 14-49 % (the built-in scene, the Lund street, the fox); thin veil
 MIN_VEIL_Z = 2.0
 """How many standard errors better than clear air the rain's veil must explain the colours at the scene's points
 (`veil_evidence`) for a medium to model it where the record gives no visibility: metegs's own heavy rain, 7.0 on the
-fox and 31 on the built-in scene; streaks without a veil −0.2 to 4.8 (the photos' exposures differing), clear photos −16 to 2.9."""
+fox and 31 on the built-in scene; streaks without a veil −0.2 to 4.8 (the photos' exposures differing), clear
+photos −16 to 2.9."""
 
 MIN_AIRLIGHT_OUTSHINES = 0.9
 """Share of the colours at the scene's points that the rain's veil's fitted airlight must outshine, as scattered
