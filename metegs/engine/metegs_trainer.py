@@ -36,6 +36,7 @@ from metegs.losses.robust import (
 from metegs.meteo.physics import LN20
 from metegs.models.gtn import may_be_visible
 from metegs.render import RenderSettings
+from metegs.weather.airlight import typical_airlight
 from metegs.weather.base import WeatherModel, WeatherScene, model_seed
 from metegs.weather.compose import render_with_weather
 from metegs.weather.conditions import LIGHT_OR_NONE, rain_phrase
@@ -431,7 +432,7 @@ class MeteGSTrainer(Trainer):
         are, the photos' colours at the starting points measure it (`_measured_medium`), and where that measure explains
         enough of them (`MIN_MEDIUM_EXPLAINED`) the prior holds it there:
         left free, it drifts while the Gaussians take the haze in (the fox in metegs's own 200 m fog: from the exact
-        0.0150/m to 0.011 within 1000 steps, 16.78 dB; held at the measure of 0.0138, 22.50)."""
+        0.0150/m to 0.011 within 1000 steps, 17.34 dB; held at the measure of 0.0153, 24.16)."""
         if not fog.log_beta.requires_grad:
             return
         measurable, seen = self._views_measure_medium
@@ -554,14 +555,17 @@ class MeteGSTrainer(Trainer):
 
     @functools.cached_property
     def _measured_medium(self) -> MediumFit | None:
-        """The uniform medium that the `_medium_observations` show (`fit_uniform_medium`), or None where there are too
-        few. Points seen from about one distance show one veil in every view, which says nothing of β but through the
-        airlight's model: the built-in scene's far hills, where the fog thins with height, read 3.2e-3/m with them and
-        1.27e-2 without (the independent family's 1.3e-2 at the ground)."""
+        """The uniform medium that the `_medium_observations` show (`fit_uniform_medium`) under the training photos'
+        `typical_airlight`, or None where there are too few. Fitted along with β, the airlight trades against it (the
+        fox in metegs's own 200 m fog: 0.0138/m under a fitted airlight, 0.0153 under the photos', exact 0.0150). Points
+        seen from about one distance show one veil in every view, which says nothing of β but through the airlight's
+        model: the built-in scene's far hills, where the fog thins with height, read 3.2e-3/m with them and 1.27e-2
+        without (the independent family's 1.3e-2 at the ground)."""
         if (obs := self._medium_observations) is None:
             return None
         with self.status("measuring the fog at the scene's points"):
-            return fit_uniform_medium(obs)
+            photos = [self.dataset.images[i].detach().cpu() for i in self.dataset.train_indices]
+            return fit_uniform_medium(obs, airlight=typical_airlight(photos))
 
     def _dense_medium(self) -> str | None:
         """The medium's optical depth at the scene's typical depth in words where it is dense there

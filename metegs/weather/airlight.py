@@ -23,3 +23,9 @@ def estimate_airlight(images: list[torch.Tensor], top_fraction: float = 0.001, p
     k = max(1, int(round(top_fraction * dark.numel())))
     idx = torch.topk(dark, k).indices
     return rgb[idx].mean(dim=0).clamp(0.0, 1.0)
+
+
+def typical_airlight(images: list[torch.Tensor], top_fraction: float = 0.001, patch: int = 15) -> torch.Tensor:
+    """Median over ``images`` (each [H, W, 3]) of each one's `estimate_airlight` -> [3]: where photos differ in
+    exposure, the pooled estimate takes the brightest photo's haze, the median a typical one's."""
+    return torch.stack([estimate_airlight([im], top_fraction, patch) for im in images]).median(dim=0).values

@@ -191,32 +191,38 @@ def fit_medium(obs: PointObservations, beta_start: float, layered: bool = True, 
     )
 
 
-def _losses_at(obs: PointObservations, beta: float, points: int, iterations: int) -> tuple[torch.Tensor, torch.Tensor]:
+def _losses_at(
+    obs: PointObservations, beta: float, points: int, iterations: int, airlight: torch.Tensor | None = None
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Robust loss (Charbonnier, summed over the channels) of each observation under the best uniform medium of
     extinction ``beta`` (1/m) -> (losses [N] float64, airlight [3]). I = J·t + A·(1 − t) is linear in the points' J
     and A: reweighted least squares alternates the two in closed form, with weights 1/√(r² + ε²) of the Charbonnier
-    loss that `fit_medium` minimises."""
+    loss that `fit_medium` minimises. A given ``airlight`` [3] stays as it is."""
     t = torch.exp(-beta * obs.distance_m.double())[:, None]
     colour = obs.colour.double()
     weight = torch.ones_like(colour)
-    airlight = colour.quantile(0.9, dim=0)
+    fixed = airlight is not None
+    airlight = airlight.double() if fixed else colour.quantile(0.9, dim=0)
     for _ in range(iterations):
         wt = weight * t
         num = torch.zeros(points, 3, dtype=torch.float64).index_add_(0, obs.point, wt * (colour - airlight * (1 - t)))
         den = torch.zeros(points, 3, dtype=torch.float64).index_add_(0, obs.point, wt * t)
         scene = (num / den.clamp_min(1e-12)).clamp(0.0, 1.0)[obs.point]
-        veil = weight * (1 - t)
-        airlight = ((veil * (colour - scene * t)).sum(0) / (veil * (1 - t)).sum(0).clamp_min(1e-12)).clamp(0.0, 1.0)
+        if not fixed:
+            veil = weight * (1 - t)
+            airlight = ((veil * (colour - scene * t)).sum(0) / (veil * (1 - t)).sum(0).clamp_min(1e-12)).clamp(0, 1)
         residual = scene * t + airlight * (1 - t) - colour
         weight = 1.0 / torch.sqrt(residual**2 + CHARBONNIER_EPS)
     residual = scene * t + airlight * (1 - t) - colour
     return torch.sqrt(residual**2 + CHARBONNIER_EPS).sum(-1), airlight.float()
 
 
-def _fit_at(obs: PointObservations, beta: float, points: int, iterations: int) -> tuple[float, torch.Tensor]:
+def _fit_at(
+    obs: PointObservations, beta: float, points: int, iterations: int, airlight: torch.Tensor | None = None
+) -> tuple[float, torch.Tensor]:
     """Mean Charbonnier loss per channel of the best uniform medium of extinction ``beta`` (1/m) -> (loss, airlight
-    [3]) (`_losses_at`)."""
-    losses, airlight = _losses_at(obs, beta, points, iterations)
+    [3]) (`_losses_at`; a given ``airlight`` [3] stays as it is)."""
+    losses, airlight = _losses_at(obs, beta, points, iterations, airlight)
     return float(losses.mean()) / 3.0, airlight
 
 
@@ -259,34 +265,41 @@ def veil_evidence(obs: PointObservations, beta_per_m: float, iterations: int = 3
 
 
 def fit_uniform_medium(
-    obs: PointObservations, beta_range: tuple[float, float] = (1e-4, 0.3), iterations: int = 30
+    obs: PointObservations,
+    beta_range: tuple[float, float] = (1e-4, 0.3),
+    iterations: int = 30,
+    airlight: torch.Tensor | None = None,
 ) -> MediumFit:
     """The uniform medium (one β, A and one J per point) that explains ``obs`` best under the Charbonnier loss of
     `fit_medium`, without gradient steps: a scan of ln β over ``beta_range`` (1/m), then a golden-section search
     around the best; `MediumFit.explained` compares its loss with clear air's. Seconds for 10⁵ observations where
-    `fit_medium`'s 1500 Adam steps take minutes."""
+    `fit_medium`'s 1500 Adam steps take minutes. A given ``airlight`` [3] is held, not fitted."""
     points = int(obs.point.max()) + 1 if len(obs) else 0
     if points == 0:
         raise ValueError("no observations to fit the medium to")
+
+    def loss_at(beta: float) -> float:
+        return _fit_at(obs, beta, points, iterations, airlight)[0]
+
     grid = torch.logspace(math.log10(beta_range[0]), math.log10(beta_range[1]), 24, dtype=torch.float64)
-    losses = [_fit_at(obs, float(b), points, iterations)[0] for b in grid]
+    losses = [loss_at(float(b)) for b in grid]
     best = min(range(len(grid)), key=losses.__getitem__)
     lo, hi = math.log(float(grid[max(best - 1, 0)])), math.log(float(grid[min(best + 1, len(grid) - 1)]))
     golden = (math.sqrt(5.0) - 1.0) / 2.0
     a, b = hi - golden * (hi - lo), lo + golden * (hi - lo)
-    fa, fb = _fit_at(obs, math.exp(a), points, iterations)[0], _fit_at(obs, math.exp(b), points, iterations)[0]
+    fa, fb = loss_at(math.exp(a)), loss_at(math.exp(b))
     for _ in range(12):
         if fa <= fb:
             hi, b, fb = b, a, fa
             a = hi - golden * (hi - lo)
-            fa = _fit_at(obs, math.exp(a), points, iterations)[0]
+            fa = loss_at(math.exp(a))
         else:
             lo, a, fa = a, b, fb
             b = lo + golden * (hi - lo)
-            fb = _fit_at(obs, math.exp(b), points, iterations)[0]
+            fb = loss_at(math.exp(b))
     beta = math.exp((lo + hi) / 2.0)
-    loss, airlight = _fit_at(obs, beta, points, iterations)
-    clear = _fit_at(obs, 0.0, points, iterations)[0]
+    clear = loss_at(0.0)
+    loss, airlight = _fit_at(obs, beta, points, iterations, airlight)
     return MediumFit(
         beta_per_m=beta,
         height_rate=0.0,

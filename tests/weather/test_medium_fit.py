@@ -72,6 +72,16 @@ def test_the_closed_form_fit_recovers_a_uniform_medium_and_reads_clear_air_as_no
     assert clear_fit.explained < 0.05 < 0.3 < fit.explained  # a medium explains the colours only where there is one
 
 
+def test_a_given_airlight_is_held_and_beta_found_under_it():
+    """With the photos' airlight given, `fit_uniform_medium` keeps it and finds β within 3 %; under an airlight
+    0.05 too bright in every channel the same colours need a thinner medium (the trade the held airlight settles)."""
+    obs, airlight = uniform_observations(0.012)
+    fit = fit_uniform_medium(obs, airlight=airlight)
+    assert fit.airlight == tuple(float(a) for a in airlight)
+    assert abs(fit.beta_per_m - 0.012) < 0.03 * 0.012
+    assert fit_uniform_medium(obs, airlight=airlight + 0.05).beta_per_m < 0.97 * fit.beta_per_m
+
+
 def astuple_rest(obs: PointObservations) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The geometry of ``obs``: (distance_m, camera_height_m, rise)."""
     return obs.distance_m, obs.camera_height_m, obs.rise
