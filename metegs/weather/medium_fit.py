@@ -5,9 +5,10 @@ see a point from distances far apart, I changes from view to view by the medium 
 points' projections measure β (and its fall with height) and the airlight A, with one unknown J per point. Training
 measures the same through the scene's Gaussians, which can take the haze in themselves (Gaussians near the
 cameras, colours that change with the view); this fit has no such freedom. Rain streaks over a point are outliers of
-its robust loss. Views in which another point hides it are left out (`unoccluded`): a nearer, darker occluder reads
-as fog towards a dark airlight (the built-in scene's clean photos read 8.3e-3/m at its spread points with them,
-1.2e-3 without; its synthetic depth maps show that 47 % of all those views do not see their point).
+its robust loss. Views in which another point hides it are left out (`unoccluded`): with the airlight fitted, a nearer,
+darker occluder reads as fog towards a dark airlight (the built-in scene's clean photos read 8.3e-3/m at its spread
+points with them, 1.2e-3 without, nothing under the photos' own airlight either way; its synthetic depth maps show
+that 47 % of all those views do not see their point).
 """
 
 from __future__ import annotations
