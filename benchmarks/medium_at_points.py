@@ -9,8 +9,9 @@ J per point. Training measures the same through the scene's Gaussians, which can
 (Gaussians near the cameras, colours that change with the view): on OpenSfM's Lund street under independent height
 fog, blind training let β fall to a third of the generator's while this fit comes within 10 %. Views in which another
 point hides a point are left out (`unoccluded`), rain streaks over it are outliers of a robust loss. Blind training
-measures a uniform medium the same way at its starting points (`fit_uniform_medium`, decision `fog-analytic prior`);
-this diagnostic also fits how β falls with height, by gradient steps, and compares it with the generator's.
+measures a uniform medium the same way at its starting points under the photos' airlight (`fit_uniform_medium`,
+decision `fog-analytic prior`); this diagnostic also fits the airlight and how β falls with height, by gradient steps,
+and compares them with the generator's.
 """
 
 from __future__ import annotations
@@ -23,7 +24,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from metegs.weather.medium_fit import fit_medium, point_observations
+from metegs.weather.airlight import typical_airlight
+from metegs.weather.medium_fit import fit_medium, fit_uniform_medium, point_observations
 
 
 def generator_medium(data: Path, scene) -> dict | None:
@@ -63,6 +65,8 @@ def main() -> None:
     )
     for layered in (False, True):
         print(("layered: " if layered else "uniform: ") + fit_medium(obs, 0.01, layered=layered).describe())
+    held = fit_uniform_medium(obs, airlight=typical_airlight(images))
+    print("uniform under the photos' airlight (as blind training measures it): " + held.describe())
     truth = generator_medium(args.data, scene)
     if truth is not None:
         a = ", ".join(f"{v:.2f}" for v in truth["airlight"])
