@@ -299,12 +299,12 @@ def fit_uniform_medium(
             b = lo + golden * (hi - lo)
             fb = loss_at(math.exp(b))
     beta = math.exp((lo + hi) / 2.0)
+    loss, fitted = _fit_at(obs, beta, points, iterations, airlight)
     clear = loss_at(0.0)
-    loss, airlight = _fit_at(obs, beta, points, iterations, airlight)
     return MediumFit(
         beta_per_m=beta,
         height_rate=0.0,
-        airlight=(float(airlight[0]), float(airlight[1]), float(airlight[2])),
+        airlight=(float(fitted[0]), float(fitted[1]), float(fitted[2])),
         observations=len(obs),
         points=len(torch.unique(obs.point)),
         explained=max(0.0, 1.0 - loss / clear) if clear > 0 else 0.0,
