@@ -34,7 +34,7 @@ def generator_medium(data: Path, scene) -> dict | None:
     from metegs.weather.independent import ground_height
 
     record = json.loads((data / "weather.json").read_text())
-    fog = next((v["fog"] for v in record.get("views", []) if "fog" in v), None)
+    fog = next((v["fog"] for v in record.get("views", []) if isinstance(v.get("fog"), dict)), None)
     if fog is None:
         return None
     up = np.asarray(scene.up, np.float64) / np.linalg.norm(scene.up)
