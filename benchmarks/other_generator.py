@@ -104,39 +104,48 @@ def drawing(variant: Variant):
         IndependentEngine.view = original
 
 
-def probe(variant_name: str, size: int, steps: int) -> dict:
-    """Blind MeteGS and 3dgs on the built-in scene under ``variant_name`` -> their metrics and MeteGS's decisions."""
+def blind_config(output_dir: Path, size: int, steps: int, kinds: str, family: str, conditions, **overrides):
+    """Blind MeteGS on the built-in scene as the CI weather-removal test trains it (24 views, every 6th held out, the
+    robust mask as a user gets it), ``kinds`` of ``family``'s weather under ``conditions`` -> MeteGSConfig."""
     from metegs.data.config import DatasetConfig, SyntheticSceneConfig
     from metegs.densify.adc import ADCConfig
-    from metegs.engine.compare import train_baseline
     from metegs.engine.metegs_config import MeteGSConfig
     from metegs.losses.robust import RobustMaskConfig
+
+    scene = SyntheticSceneConfig(width=size, height=size * 3 // 4, num_views=24, num_points=3000)
+    return MeteGSConfig(
+        method="metegs-full",
+        max_steps=steps,
+        output_dir=output_dir,
+        experiment_name="run",
+        device="cpu",
+        progress=False,
+        dataset=DatasetConfig(synthetic=scene, auto_max_side=size, test_every=6),
+        densify=ADCConfig(),
+        checkpoint_every=0,
+        save_renders=False,
+        degrade=kinds,
+        degrade_family=family,
+        conditions=conditions,
+        clean_supervision=False,
+        compare_baseline=False,
+        robust=RobustMaskConfig(),
+        lpips_download=False,
+        **overrides,
+    )
+
+
+def probe(variant_name: str, size: int, steps: int) -> dict:
+    """Blind MeteGS and 3dgs on the built-in scene under ``variant_name`` -> their metrics and MeteGS's decisions."""
+    from metegs.engine.compare import train_baseline
     from metegs.weather.conditions import ConditionsConfig
 
     variant = VARIANTS[variant_name]
     rain = variant.streak_radiance is not None
     kinds = "+".join(k for k, on in (("rain", rain), ("fog", variant.fog)) if on)
-    scene = SyntheticSceneConfig(width=size, height=size * 3 // 4, num_views=24, num_points=3000)
+    conditions = ConditionsConfig(precip_mm_h=22.0 if rain else 0.0, visibility_m=300.0 if variant.fog else None)
     with tempfile.TemporaryDirectory() as tmp, drawing(variant):
-        config = MeteGSConfig(
-            method="metegs-full",
-            max_steps=steps,
-            output_dir=Path(tmp),
-            experiment_name="run",
-            device="cpu",
-            progress=False,
-            dataset=DatasetConfig(synthetic=scene, auto_max_side=size, test_every=6),
-            densify=ADCConfig(),
-            checkpoint_every=0,
-            save_renders=False,
-            degrade=kinds,
-            degrade_family="independent",
-            conditions=ConditionsConfig(precip_mm_h=22.0 if rain else 0.0, visibility_m=300.0 if variant.fog else None),
-            clean_supervision=False,
-            compare_baseline=False,
-            robust=RobustMaskConfig(),
-            lpips_download=False,
-        )
+        config = blind_config(Path(tmp), size, steps, kinds, "independent", conditions)
         trainer = config.setup()
         blind = trainer.train()
         plain = train_baseline(trainer)

@@ -157,7 +157,7 @@ def test_blind_the_record_holds_beta_where_heavy_rain_falls_through_dense_fog(tm
     assert blind.decisions["fog-analytic prior"].startswith("off:")  # light rain: the photos measure β
 
 
-def test_the_dark_channel_prior_holds_the_fog_where_blind_photos_cannot_measure_it(tmp_path):
+def test_the_dark_channel_prior_holds_the_fog_where_blind_photos_cannot_measure_it(tmp_path, monkeypatch):
     """Blind on a forward-facing rig the dark-channel prior holds the medium (the record's β is where it starts, not a
     prior) and moves β; where the views measure β (the built-in scene's surround), with clean references, or off, the
     record prior decides as before."""
@@ -168,13 +168,25 @@ def test_the_dark_channel_prior_holds_the_fog_where_blind_photos_cannot_measure_
     assert around.dehazing == [] and around.decisions["dark channel prior"].startswith("off: the views see a scene")
     assert around.decisions["fog-analytic prior"].startswith("on (weight 0.1): the views see a scene point from")
     assert "the photos measure β" in around.decisions["fog-analytic prior"]  # at the scene's points
-    # in fog dense at the scene's depth the prior holds it there too: a scene without near-black patches biases the
-    # veil it reads by J·t, small against 1 − t (the built-in scene in 200 m fog: 17.02 dB with it, 14.20 without)
+    # in fog dense at the scene's depth the points' measure holds it too (the Lund street in metegs's own 200 m fog:
+    # 12.71 dB, 10.19 under the dark channel), and where they do not measure it the prior does
     thick = replace(conditions, visibility_m=60.0)
     dense = tiny_metegs(tmp_path / "dense", conditions=thick, max_steps=1, clean_supervision=False).setup()
-    assert dense.medium_optical_depth >= DENSE_OPTICAL_DEPTH and len(dense.dehazing) == 1
-    assert dense.decisions["dark channel prior"].startswith("on: the views see a scene point from distances")
-    assert "but the medium's optical depth at the scene's typical depth is" in dense.decisions["dark channel prior"]
+    assert dense.medium_optical_depth >= DENSE_OPTICAL_DEPTH and dense.dehazing == []
+    assert dense.decisions["dark channel prior"].startswith("off: the views see a scene point from distances")
+    assert "the photos measure β" in dense.decisions["dark channel prior"]
+    fog = next(m for m in dense.weather_models if m.name == "fog-analytic")
+    assert fog.use_record_prior and fog.measured_beta is not None
+    assert float(fog.log_beta.detach().mean().exp()) == pytest.approx(fog.measured_beta, rel=1e-5)
+    assert "the photos measure β" in dense.decisions["fog-analytic prior"]
+    monkeypatch.setattr("metegs.engine.metegs_trainer.MIN_MEDIUM_EXPLAINED", 1.01)  # nothing explains that much
+    unmeasured = tiny_metegs(tmp_path / "unmeasured", conditions=thick, max_steps=1, clean_supervision=False).setup()
+    assert len(unmeasured.dehazing) == 1
+    assert unmeasured.decisions["dark channel prior"].startswith("on: the views see a scene point from distances")
+    assert (
+        "but the medium's optical depth at the scene's typical depth is" in unmeasured.decisions["dark channel prior"]
+    )
+    monkeypatch.undo()
     # heavy rain through it keeps the record prior (the Lund street, independent rain + fog: 12.34 dB, 11.98 with it)
     rainy = tiny_metegs(
         tmp_path / "rainy", conditions=replace(thick, precip_mm_h=20.0), max_steps=1, clean_supervision=False
