@@ -151,13 +151,14 @@ class FogAnalytic(WeatherModel):
         self.register_buffer("reference_height", (scene.cameras.centers.float() @ up).mean(), persistent=False)
         self._rays: dict[int, torch.Tensor] = {}
 
-    def hold_at(self, beta_per_m: float) -> None:
-        """Start β at ``beta_per_m`` (1/m, the photos' measure) and centre the prior there, θ's ratios between the
-        colour channels kept."""
+    def hold_at(self, beta_per_m: float, height_rate: float = 0.0) -> None:
+        """Start β at ``beta_per_m`` (1/m at the cameras' mean height, the photos' measure) and centre the prior there,
+        θ's ratios between the colour channels kept; the height profile starts at ``height_rate`` (100·k)."""
         shift = math.log(beta_per_m) - float(self.record_log_beta.mean())
         with torch.no_grad():
             self.log_beta.copy_(self.record_log_beta + shift)
             self.prior_log_beta.copy_(self.record_log_beta + shift)
+            self.height_rate.fill_(height_rate)
         self.measured_beta = beta_per_m
 
     def learn_layers(self) -> bool:

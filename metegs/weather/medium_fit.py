@@ -163,15 +163,24 @@ def point_observations(
     )
 
 
-def fit_medium(obs: PointObservations, beta_start: float, layered: bool = True, steps: int = FIT_STEPS) -> MediumFit:
+def fit_medium(
+    obs: PointObservations,
+    beta_start: float,
+    layered: bool = True,
+    steps: int = FIT_STEPS,
+    airlight: torch.Tensor | None = None,
+) -> MediumFit:
     """Robust least squares (Charbonnier) of I = J·t + A·(1 − t) over ``obs``, t = exp(−β·d·`height_profile`), for β
-    (from ``beta_start``), the height rate (0 unless ``layered``), A and one J per point."""
+    (from ``beta_start``), the height rate (0 unless ``layered``), A (held where ``airlight`` [3] is given) and one J
+    per point."""
     points = int(obs.point.max()) + 1 if len(obs) else 0
     log_beta = torch.tensor(math.log(beta_start), requires_grad=True)
     height_rate = torch.zeros((), requires_grad=layered)
-    airlight_logit = torch.full((3,), 1.5, requires_grad=True)
+    held = airlight is not None
+    start = torch.logit(airlight.float().clamp(1e-4, 1 - 1e-4)) if held else torch.full((3,), 1.5)
+    airlight_logit = start.clone().requires_grad_(not held)
     scene_logit = torch.zeros((points, 3), requires_grad=True)
-    params = [log_beta, airlight_logit, scene_logit] + ([height_rate] if layered else [])
+    params = [log_beta, scene_logit] + ([] if held else [airlight_logit]) + ([height_rate] if layered else [])
     opt = torch.optim.Adam(params, lr=0.02)
     for _ in range(steps):
         k = height_rate / 100.0
@@ -182,11 +191,11 @@ def fit_medium(obs: PointObservations, beta_start: float, layered: bool = True, 
         opt.zero_grad()
         loss.backward()
         opt.step()
-    airlight = torch.sigmoid(airlight_logit.detach())
+    fitted = airlight.float() if held else torch.sigmoid(airlight_logit.detach())
     return MediumFit(
         beta_per_m=float(log_beta.detach().exp()),
         height_rate=float(height_rate.detach()),
-        airlight=(float(airlight[0]), float(airlight[1]), float(airlight[2])),
+        airlight=(float(fitted[0]), float(fitted[1]), float(fitted[2])),
         observations=len(obs),
         points=len(torch.unique(obs.point)) if len(obs) else 0,
     )

@@ -157,6 +157,32 @@ def test_blind_the_record_holds_beta_where_heavy_rain_falls_through_dense_fog(tm
     assert blind.decisions["fog-analytic prior"].startswith("off:")  # light rain: the photos measure β
 
 
+@pytest.mark.parametrize("height_rate", [2.0, -2.0])
+def test_held_fog_starts_its_layers_where_the_points_show_it_thinning_upwards(tmp_path, monkeypatch, height_rate):
+    """Where β is held at the points' measure, the layered fit of the same points sets where β and its height profile
+    start if it thins upwards (scale height 50 m); one denser upwards, as uniform fogs read, starts uniform."""
+    from metegs.weather.medium_fit import MediumFit
+
+    fit = MediumFit(beta_per_m=0.02, height_rate=height_rate, airlight=(0.8, 0.8, 0.8), observations=10, points=5)
+    monkeypatch.setattr("metegs.engine.metegs_trainer.fit_medium", lambda *args, **kwargs: fit)
+    conditions = ConditionsConfig(precip_mm_h=0.0, visibility_m=300.0, metres_per_unit=10.0)
+    trainer = tiny_metegs(tmp_path, conditions=conditions, max_steps=1, clean_supervision=False).setup()
+    fog = next(m for m in trainer.weather_models if m.name == "fog-analytic")
+    layers = trainer.decisions["fog-analytic layers"]
+    assert fog.height_rate.requires_grad and "the photos measure β" in trainer.decisions["fog-analytic prior"]
+    if height_rate > 0:
+        assert layers.endswith(
+            "from the points' measure of how: 2.00e-02/m at the cameras' mean height, scale height 50 m"
+        )
+        assert float(fog.height_rate.detach()) == height_rate and fog.measured_beta == 0.02
+        assert float(fog.prior_log_beta.mean().exp()) == pytest.approx(0.02, rel=1e-5)
+    else:
+        assert layers.endswith(
+            "from uniform: the points read it denser upwards (scale height -50 m), as they read uniform fog"
+        )
+        assert float(fog.height_rate.detach()) == 0.0 and fog.measured_beta != 0.02
+
+
 def test_the_dark_channel_prior_holds_the_fog_where_blind_photos_cannot_measure_it(tmp_path, monkeypatch):
     """Blind on a forward-facing rig the dark-channel prior holds the medium (the record's β is where it starts, not a
     prior) and moves β; where the views measure β (the built-in scene's surround), with clean references, or off, the
@@ -168,6 +194,7 @@ def test_the_dark_channel_prior_holds_the_fog_where_blind_photos_cannot_measure_
     assert around.dehazing == [] and around.decisions["dark channel prior"].startswith("off: the views see a scene")
     assert around.decisions["fog-analytic prior"].startswith("on (weight 0.1): the views see a scene point from")
     assert "the photos measure β" in around.decisions["fog-analytic prior"]  # at the scene's points
+    assert around.decisions["fog-analytic layers"].startswith("on: β learns how it changes with height, from")
     # in fog dense at the scene's depth the points' measure holds it too (the Lund street in metegs's own 200 m fog:
     # 12.71 dB, 10.19 under the dark channel), and where they do not measure it the prior does
     thick = replace(conditions, visibility_m=60.0)

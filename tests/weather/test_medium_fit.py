@@ -16,30 +16,48 @@ from metegs.weather.medium_fit import (
     veil_evidence,
 )
 
+LAYERED_K = 1.0 / 40.0
+"""Height rate (1/m) of the layered test medium: a 40 m scale height."""
 
-def test_the_fit_recovers_a_layered_medium_from_point_colours():
+
+def layered_observations(seed: int, streaked: float) -> tuple[PointObservations, torch.Tensor]:
     """200 points seen from 10 distances each (20-200 m, cameras 0-30 m over their mean) through β 0.01/m thinning
-    with a 40 m scale height under airlight (0.8, 0.85, 0.9); a tenth of the observations brightened as by streaks."""
-    g = torch.Generator().manual_seed(0)
+    with a scale height of 1/`LAYERED_K` under airlight (0.8, 0.85, 0.9), a share ``streaked`` of the observations
+    brightened as by streaks -> (observations, airlight)."""
+    g = torch.Generator().manual_seed(seed)
     points, views = 200, 10
     point = torch.arange(points).repeat_interleave(views)
     distance = 20.0 + 180.0 * torch.rand(points * views, generator=g)
     height = 30.0 * torch.rand(points * views, generator=g) - 15.0
     rise = 0.2 * torch.rand(points * views, generator=g) - 0.1
-    k = 1.0 / 40.0
-    tau = 0.01 * distance * height_profile(torch.tensor(k), height, rise, distance)
+    tau = 0.01 * distance * height_profile(torch.tensor(LAYERED_K), height, rise, distance)
     t = torch.exp(-tau)[:, None]
     albedo = torch.rand(points, 3, generator=g) * 0.6
     airlight = torch.tensor([0.8, 0.85, 0.9])
     colour = albedo[point] * t + airlight * (1 - t)
-    streaks = torch.rand(points * views, generator=g) < 0.1
+    streaks = torch.rand(points * views, generator=g) < streaked
     colour[streaks] = (colour[streaks] + 0.4).clamp(max=1.0)
-    obs = PointObservations(point, colour, distance, height, rise)
+    return PointObservations(point, colour, distance, height, rise), airlight
+
+
+def test_the_fit_recovers_a_layered_medium_from_point_colours():
+    """`layered_observations`, a tenth of them streaked: β, the scale height and the airlight."""
+    obs, airlight = layered_observations(0, streaked=0.1)
     fit = fit_medium(obs, beta_start=0.003)
     assert abs(fit.beta_per_m - 0.01) < 0.001
-    assert abs(fit.height_rate / 100.0 - k) < 0.3 * k
+    assert abs(fit.height_rate / 100.0 - LAYERED_K) < 0.3 * LAYERED_K
     assert max(abs(a - b) for a, b in zip(fit.airlight, airlight.tolist(), strict=True)) < 0.03
-    assert (fit.observations, fit.points) == (points * views, points)
+    assert (fit.observations, fit.points) == (2000, 200)
+
+
+def test_the_layered_fit_holds_a_given_airlight():
+    """`layered_observations` under their airlight given: `fit_medium` keeps it and finds β and the scale height; under
+    an airlight 0.05 too bright the same colours need a thinner medium."""
+    obs, airlight = layered_observations(1, streaked=0.0)
+    fit = fit_medium(obs, beta_start=0.005, airlight=airlight)
+    assert fit.airlight == tuple(float(a) for a in airlight)
+    assert abs(fit.beta_per_m - 0.01) < 0.05 * 0.01 and abs(fit.height_rate / 100.0 - LAYERED_K) < 0.2 * LAYERED_K
+    assert fit_medium(obs, beta_start=0.005, airlight=airlight + 0.05).beta_per_m < 0.97 * fit.beta_per_m
 
 
 def uniform_observations(beta: float, seed: int = 0) -> tuple[PointObservations, torch.Tensor]:
