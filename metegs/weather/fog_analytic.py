@@ -14,11 +14,11 @@ can take the haze in; unless heavy rain falls through dense fog: the light it ad
 held.
 
 Where the photos measure the medium, the fog also learns how it thins with height above the ground, starting
-uniform, or, blind, where the points' measure holds β and reads it thinning upwards, at their profile: β(x) = β·exp(−k·h(x)), h the height in metres over the cameras' mean and k learnable, so
-the optical depth of a ray from height h_c, rising u per metre, to distance d is
-β·d·exp(−k·h_c)·(1 − e^{−k·u·d})/(k·u·d), exact. Without the profile, where the true fog is thinner than a uniform
-one the scene can only darken itself by moving Gaussians in front of the fog, next to the camera: floaters in the
-clean render.
+uniform, or, blind, where the points' measure holds β and reads it thinning upwards, at their profile:
+β(x) = β·exp(−k·h(x)), h the height in metres over the cameras' mean and k learnable, so the optical depth of a ray
+from height h_c, rising u per metre, to distance d is β·d·exp(−k·h_c)·(1 − e^{−k·u·d})/(k·u·d), exact. Without the
+profile, where the true fog is thinner than a uniform one the scene can only darken itself by moving Gaussians in front
+of the fog, next to the camera: floaters in the clean render.
 """
 
 from __future__ import annotations
