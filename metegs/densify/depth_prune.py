@@ -44,7 +44,7 @@ from metegs.config import InstantiateConfig
 from metegs.errors import ConfigError
 from metegs.gaussians.model import GaussianModel
 
-__all__ = ["DepthAwarePruning", "DepthPruneConfig", "median_camera_depth"]
+__all__ = ["DepthAwarePruning", "DepthPruneConfig", "camera_depths", "median_camera_depth"]
 
 NEAR = 0.01
 """Camera-space depth below which a camera does not see a Gaussian (the rasteriser's default near plane)."""
@@ -75,22 +75,28 @@ def median_camera_depth(points: torch.Tensor, cameras: Cameras, near: float = NE
         [N] depths (the lower median for an even number of cameras, as ``torch.median``).
     """
     cams = cameras.to(points.device)
-    w2c = cams.world_to_cameras().to(points.dtype)
-    R, t = w2c[:, :3, :3], w2c[:, :3, 3]
-    fx, fy, cx, cy = (getattr(cams, k).to(points.dtype)[:, None] for k in ("fx", "fy", "cx", "cy"))
-    width, height = cams.width.to(points.dtype)[:, None], cams.height.to(points.dtype)[:, None]
     n, c = points.shape[0], len(cams)
     out = torch.full((n,), float("nan"), dtype=points.dtype, device=points.device)
     chunk = max(1, _PAIRS_PER_CHUNK // max(c, 1))
     for start in range(0, n, chunk):
-        p = torch.einsum("cij,nj->cni", R, points[start : start + chunk]) + t[:, None, :]  # [C, n, 3]
-        z = p[..., 2]
-        zs = z.clamp_min(near)
-        u = fx * p[..., 0] / zs + cx
-        v = fy * p[..., 1] / zs + cy
-        seen = (z > near) & (u >= 0) & (u < width) & (v >= 0) & (v < height)
+        z, seen = camera_depths(points[start : start + chunk], cams, near)
         out[start : start + chunk] = torch.where(seen, z, torch.nan).nanmedian(dim=0).values
     return out
+
+
+def camera_depths(points: torch.Tensor, cameras: Cameras, near: float = NEAR) -> tuple[torch.Tensor, torch.Tensor]:
+    """Camera-space depth (OpenCV z) of ``points`` [N, 3] in each of ``cameras`` (on the points' device) -> (z [C, N],
+    seen [C, N] bool: in front beyond ``near`` and projecting inside the image)."""
+    w2c = cameras.world_to_cameras().to(points.dtype)
+    R, t = w2c[:, :3, :3], w2c[:, :3, 3]
+    fx, fy, cx, cy = (getattr(cameras, k).to(points.dtype)[:, None] for k in ("fx", "fy", "cx", "cy"))
+    width, height = cameras.width.to(points.dtype)[:, None], cameras.height.to(points.dtype)[:, None]
+    p = torch.einsum("cij,nj->cni", R, points) + t[:, None, :]  # [C, N, 3]
+    z = p[..., 2]
+    zs = z.clamp_min(near)
+    u = fx * p[..., 0] / zs + cx
+    v = fy * p[..., 1] / zs + cy
+    return z, (z > near) & (u >= 0) & (u < width) & (v >= 0) & (v < height)
 
 
 def _percentile(x: torch.Tensor, q: float) -> torch.Tensor:

@@ -92,6 +92,10 @@ class MeteGSConfig(TrainConfig):
     """Depth-aware pruning: the opacity threshold falls with normalised camera depth."""
     depth_prune_options: DepthPruneConfig = field(default_factory=DepthPruneConfig)
     """Depth-aware pruning options."""
+    camera_clearance: Annotated[float, NON_NEGATIVE] = 0.5
+    """Prune the Gaussians closer to a training camera than this fraction of the median distance between
+    neighbouring cameras (at most a tenth of the scene's typical depth) that none of the cameras there sees, when
+    training ends: the cameras stood there (0: off)."""
     extra_points: bool = True
     """Extra-point compensation in sparse regions, once early in the run."""
     extra_points_options: ExtraPointsConfig = field(default_factory=lambda: ExtraPointsConfig(max_relative=0.25))

@@ -140,6 +140,7 @@ class MeteGSTrainer(Trainer):
         self._setup_robust()
         self._feature_cache: dict[int, list[dict[str, torch.Tensor]]] = {}
         self._setup_extra_points()
+        self._setup_camera_clearance()
         self.method_optimizers = self._method_optimizers()
 
     def _triangulation_photos(self) -> tuple[list[Path] | None, list[torch.Tensor], str]:
@@ -769,6 +770,27 @@ class MeteGSTrainer(Trainer):
         else:
             self.decide("extra points", "off")
 
+    def _setup_camera_clearance(self) -> None:
+        """`camera_clearance`: the Gaussians beside or behind a training camera go when training ends."""
+        from metegs.densify.camera_clearance import DEPTH_SHARE, CameraClearance
+
+        fraction = self.config.camera_clearance
+        cameras = self.dataset.cameras[self.dataset.train_indices]
+        depth = typical_depth_m(cameras, self.scene.points, 1.0)
+        self.clearance = CameraClearance(cameras, fraction, depth) if fraction > 0 else None
+        if self.clearance is None:
+            self.decide("camera clearance", "off")
+        elif self.clearance.radius <= 0:
+            self.clearance = None
+            self.decide("camera clearance", "off: the training cameras stand at one place")
+        else:
+            self.decide(
+                "camera clearance",
+                f"on: Gaussians within {self.clearance.radius:.3g} (scene units: {fraction:g} of the median distance "
+                f"between neighbouring training cameras, at most {DEPTH_SHARE:g} of the scene's typical depth) of a "
+                "training camera that none of the cameras there sees are pruned when training ends",
+            )
+
     def make_densifier(self):
         """The configured densification with depth-aware pruning (`depth_prune`) as its pruning rule where the weather
         blurs the photos, and without opacity resets where a visible medium dims the views with no rain to clear, or
@@ -921,10 +943,13 @@ class MeteGSTrainer(Trainer):
         return [*super().step_optimizers(), *self.method_optimizers.values()]
 
     def densify_step(self) -> dict[str, int]:
-        """The densification schedule, then the extra points once (`extra_points`)."""
+        """The densification schedule, then the extra points once (`extra_points`), and at the last step the camera
+        clearance (`camera_clearance`)."""
         changes = super().densify_step()
         if self.extra_points is not None:
             changes.update(self.extra_points.step(self.model, self.optimizers, self.step))
+        if self.clearance is not None and self.step == self.config.max_steps - 1:
+            changes["prune_near_cameras"] = self.clearance.prune(self.model, self.optimizers)
         return changes
 
     def _reference_features(self, index: int, reference: torch.Tensor) -> list[dict[str, torch.Tensor]]:

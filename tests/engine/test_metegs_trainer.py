@@ -937,3 +937,25 @@ def test_a_perceptual_loss_without_weights_is_said_once_as_a_warning(tmp_path, m
     text = console.export_text()
     assert text.count(decision[len("off: ") :]) == 1, text
     assert f"warning: perceptual: {decision}" in text
+
+
+def test_gaussians_at_the_training_cameras_are_gone_when_training_ends(tmp_path):
+    from metegs.densify.camera_clearance import unseen_near_cameras
+    from metegs.densify.surgery import append_rows
+
+    trainer = tiny_metegs(tmp_path, max_steps=3, checkpoint_every=0, eval_every=0.0).setup()
+    assert trainer.decisions["camera clearance"].startswith("on: Gaussians within")
+    cameras = trainer.dataset.cameras[trainer.dataset.train_indices]
+    centers = cameras.camera_to_worlds[:, :3, 3].float()
+    radius = trainer.clearance.radius
+    scene = len(trainer.model)
+    assert not unseen_near_cameras(trainer.model.means.detach(), cameras, radius).any()  # the scene keeps its distance
+    floaters = {k: v.detach()[: len(centers)].clone() for k, v in trainer.model.params.items()}
+    floaters["means"] = centers - 0.2 * radius * cameras.camera_to_worlds[:, :3, 2]  # just behind each camera
+    append_rows(trainer.model.params, trainer.optimizers, floaters)
+    assert int(unseen_near_cameras(trainer.model.means.detach(), cameras, radius).sum()) == len(centers)
+    trainer.train()
+    assert not unseen_near_cameras(trainer.model.means.detach(), cameras, radius).any()
+    assert len(trainer.model) >= scene - 50  # the rest stays (3 steps of densification may prune a few)
+    off = tiny_metegs(tmp_path / "off", max_steps=1, camera_clearance=0.0).setup()
+    assert off.clearance is None and off.decisions["camera clearance"] == "off"
