@@ -722,7 +722,8 @@ class MeteGSTrainer(Trainer):
 
     def _blind_sharp_weather(self, models: list[WeatherModel] | None = None) -> str | None:
         """`_sharp_weather` in blind training, None beside clean references: where the run leaves out the learnable
-        streaks, the extra points and depth-aware pruning (with references they pay even in light rain)."""
+        streaks, the extra points, depth-aware pruning and the camera clearance (with references they pay even in light
+        rain)."""
         return None if self.use_clean else self._sharp_weather(models)
 
     def _make_exposure(self):
@@ -780,6 +781,9 @@ class MeteGSTrainer(Trainer):
         self.clearance = CameraClearance(cameras, fraction, depth) if fraction > 0 else None
         if self.clearance is None:
             self.decide("camera clearance", "off")
+        elif (sharp := self._blind_sharp_weather()) is not None:
+            self.clearance = None
+            self.decide("camera clearance", f"off: {sharp}, so, blind, the run is 3dgs's")
         elif self.clearance.radius <= 0:
             self.clearance = None
             self.decide("camera clearance", "off: the training cameras stand at one place")
