@@ -21,6 +21,10 @@ from metegs.densify.depth_prune import camera_depths
 from metegs.densify.surgery import select_rows
 from metegs.gaussians.model import GaussianModel
 
+DEPTH_SHARE = 0.1
+"""The radius stays under this share of the scene's typical depth: where few cameras stand far apart (a ring of a
+dozen), half their spacing reaches the ground under them."""
+
 _PAIRS_PER_CHUNK = 1 << 22
 
 
@@ -53,11 +57,6 @@ def unseen_near_cameras(means: torch.Tensor, cameras: Cameras, radius: float) ->
         hit[candidates] = ~(near[:, candidates] & seen).any(dim=0)
         out[start : start + chunk] = hit
     return out
-
-
-DEPTH_SHARE = 0.1
-"""The radius stays under this share of the scene's typical depth: where few cameras stand far apart (a ring of a
-dozen), half their spacing reaches the ground under them."""
 
 
 class CameraClearance:

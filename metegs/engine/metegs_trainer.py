@@ -775,25 +775,25 @@ class MeteGSTrainer(Trainer):
         """`camera_clearance`: the Gaussians beside or behind a training camera go when training ends."""
         from metegs.densify.camera_clearance import DEPTH_SHARE, CameraClearance
 
-        fraction = self.config.camera_clearance
-        cameras = self.dataset.cameras[self.dataset.train_indices]
-        depth = typical_depth_m(cameras, self.scene.points, 1.0)
-        self.clearance = CameraClearance(cameras, fraction, depth) if fraction > 0 else None
-        if self.clearance is None:
+        fraction, self.clearance = self.config.camera_clearance, None
+        if fraction <= 0:
             self.decide("camera clearance", "off")
-        elif (sharp := self._blind_sharp_weather()) is not None:
-            self.clearance = None
+            return
+        if (sharp := self._blind_sharp_weather()) is not None:
             self.decide("camera clearance", f"off: {sharp}, so, blind, the run is 3dgs's")
-        elif self.clearance.radius <= 0:
-            self.clearance = None
+            return
+        cameras = self.dataset.cameras[self.dataset.train_indices]
+        clearance = CameraClearance(cameras, fraction, typical_depth_m(cameras, self.scene.points, 1.0))
+        if clearance.radius <= 0:
             self.decide("camera clearance", "off: the training cameras stand at one place")
-        else:
-            self.decide(
-                "camera clearance",
-                f"on: Gaussians within {self.clearance.radius:.3g} (scene units: {fraction:g} of the median distance "
-                f"between neighbouring training cameras, at most {DEPTH_SHARE:g} of the scene's typical depth) of a "
-                "training camera that none of the cameras there sees are pruned when training ends",
-            )
+            return
+        self.clearance = clearance
+        self.decide(
+            "camera clearance",
+            f"on: Gaussians within {clearance.radius:.3g} (scene units: {fraction:g} of the median distance between "
+            f"neighbouring training cameras, at most {DEPTH_SHARE:g} of the scene's typical depth) of a training camera "
+            "that none of the cameras there sees are pruned when training ends",
+        )
 
     def make_densifier(self):
         """The configured densification with depth-aware pruning (`depth_prune`) as its pruning rule where the weather
