@@ -30,6 +30,7 @@ from typing import Annotated, Literal
 
 import torch
 
+from metegs.gaussians.sh import eval_sh, num_sh_bases
 from metegs.meteo.mapping import Theta
 from metegs.render.base import RenderOutput, RenderSettings
 from metegs.validate import NON_NEGATIVE
@@ -96,6 +97,12 @@ class FogAnalyticConfig(WeatherModelConfig):
     that scales the optical depth: fog that varies in patches (0: off)."""
     patches_weight: Annotated[float, NON_NEGATIVE] = 0.01
     """Weight of the patches' prior, mean of their squared log-scales (they stay at 1 unless the photos pay)."""
+    airlight_degree: Annotated[int, NON_NEGATIVE] = 0
+    """Opt-in (e.g. 2): where the views measure the fog, the airlight also learns how it changes with the viewing
+    direction (brighter towards the horizon or the sun), real spherical harmonics up to this degree in world axes
+    (0: one airlight for every direction; benchmark.md, "The airlight along each direction")."""
+    airlight_weight: Annotated[float, NON_NEGATIVE] = 0.001
+    """Weight of that prior, mean of the squared coefficients (logit units; they stay at 0 unless the photos pay)."""
 
     def for_synthesis(self, request: SynthesisRequest) -> FogAnalyticConfig | None:
         """The medium of fog, and of rain beyond the streaks' reach (its veil, weather-physics.md) when it rains: fixed,
@@ -107,6 +114,25 @@ class FogAnalyticConfig(WeatherModelConfig):
         if airlight is None and request.theta.fog.airlight_rgb is None:
             airlight = request.airlight()
         return dataclasses.replace(self, airlight=airlight, include_rain_veil="rain" in request.kinds, learnable=False)
+
+
+def world_directions(camera, height: int, width: int) -> torch.Tensor:
+    """[H, W, 3] unit world direction of each pixel's ray. camera: one view."""
+    fx, fy, cx, cy = (float(v[0]) for v in (camera.fx, camera.fy, camera.cx, camera.cy))
+    ys, xs = torch.meshgrid(torch.arange(height) + 0.5, torch.arange(width) + 0.5, indexing="ij")
+    rays = torch.stack([(xs - cx) / fx, (ys - cy) / fy, torch.ones_like(xs)], dim=-1)
+    rays = rays @ camera.camera_to_worlds[0, :3, :3].float().T
+    return rays / rays.norm(dim=-1, keepdim=True)
+
+
+def direction_basis(degree: int, directions: torch.Tensor) -> torch.Tensor:
+    """Real spherical harmonics of degrees 1..``degree`` (the 3DGS convention) at unit ``directions`` [..., 3] ->
+    [..., (degree + 1)² − 1]; the constant one is left out (the airlight's own level)."""
+    count = num_sh_bases(degree)
+    flat = directions.reshape(-1, 3)
+    unit = torch.eye(count, dtype=flat.dtype, device=flat.device)[1:, :, None]  # [K-1, K, 1]: one basis each
+    columns = [eval_sh(degree, unit[k : k + 1], flat)[:, 0] - 0.5 for k in range(count - 1)]
+    return torch.stack(columns, dim=-1).reshape(*directions.shape[:-1], count - 1)
 
 
 def patch_grid(cameras, cells: int) -> tuple[int, int, int]:
@@ -146,6 +172,11 @@ class FogAnalytic(WeatherModel):
         that an optimiser's steps of ~0.01 move it by a small fraction of a realistic 0.01-0.1 per metre)."""
         self.patch_log_scale = torch.nn.Parameter(torch.zeros(patch_grid(scene.cameras, config.patches)), False)
         """[V, gh, gw] per view, ln of the factor on the optical depth in each cell of a coarse grid (`patches`)."""
+        directional = max(0, num_sh_bases(config.airlight_degree) - 1)
+        self.airlight_sh = torch.nn.Parameter(torch.zeros(directional, 3), requires_grad=False)
+        """[K, 3] coefficients of the airlight's logit on the spherical harmonics of degree 1..``airlight_degree``
+        of the world direction (learned by `learn_directions`)."""
+        self._directions: dict[int, torch.Tensor] = {}
         up = scene.up.float() / scene.up.float().norm().clamp_min(1e-12)
         self.register_buffer("up", up, persistent=False)
         self.register_buffer("reference_height", (scene.cameras.centers.float() @ up).mean(), persistent=False)
@@ -174,6 +205,31 @@ class FogAnalytic(WeatherModel):
             return False
         self.patch_log_scale.requires_grad_(True)
         return True
+
+    def learn_directions(self) -> bool:
+        """Let the airlight change with the viewing direction from now on (`airlight_degree` > 0, learnable) ->
+        whether it does."""
+        if not (self.config.airlight_degree > 0 and self.config.learnable):
+            return False
+        self.airlight_sh.requires_grad_(True)
+        return True
+
+    @property
+    def directional(self) -> bool:
+        """Whether the airlight changes with the viewing direction (learned, or loaded non-zero)."""
+        return self.airlight_sh.requires_grad or bool(self.airlight_sh.detach().any())
+
+    def airlight_toward(self, view: int, height: int, width: int) -> torch.Tensor:
+        """The airlight each pixel of view ``view`` looks into: [H, W, 3] where it changes with the direction, else
+        the one airlight [3]."""
+        if not self.directional:
+            return self.airlight
+        basis = self._directions.get(view)
+        if basis is None or basis.shape[:2] != (height, width):  # the cameras are fixed: one basis per view
+            directions = world_directions(self.scene.cameras[view], height, width)
+            basis = direction_basis(self.config.airlight_degree, directions).to(self.airlight_sh)
+            self._directions[view] = basis
+        return torch.sigmoid(self.airlight_logit + basis.to(self.airlight_sh) @ self.airlight_sh)
 
     @property
     def patchy(self) -> bool:
@@ -208,7 +264,8 @@ class FogAnalytic(WeatherModel):
         background = settings.background_tensor(rgb)
         color = rgb - (1.0 - out.alpha)[..., None] * background  # premultiplied scene colour
         distance = self.optical_distance(out.depth, out.alpha, view)
-        return fog_composite(color, out.alpha, distance, self.beta_rgb.to(rgb), self.airlight.to(rgb))
+        airlight = self.airlight_toward(view, *distance.shape)
+        return fog_composite(color, out.alpha, distance, self.beta_rgb.to(rgb), airlight.to(rgb))
 
     def optical_distance(self, depth: torch.Tensor, alpha: torch.Tensor, view: int) -> torch.Tensor:
         """[H, W] metres along each pixel's ray to the rendered surface, times the height profile's factor (0 where
@@ -240,7 +297,7 @@ class FogAnalytic(WeatherModel):
         beta = torch.exp(level + (self.log_beta - level).detach())
         t = torch.exp(-distance[..., None] * beta.to(photo))
         valid = (alpha > 0.5) & (t.detach().amin(-1) >= min_transmission)
-        airlight = self.airlight.detach().to(photo)
+        airlight = self.airlight_toward(view, *distance.shape).detach().to(photo)
         return (photo - airlight) / t.clamp_min(min_transmission) + airlight, valid
 
     def seen_through(self, colour: torch.Tensor, alpha: torch.Tensor, depth: torch.Tensor, view: int) -> torch.Tensor:
@@ -253,7 +310,8 @@ class FogAnalytic(WeatherModel):
         if self.layered:
             distance = distance * self.height_factor(self.rise(view, rays), distance, view)
         t = torch.exp(-distance[..., None] * self.beta_rgb.detach().to(colour))
-        return colour * t + self.airlight.detach().to(colour) * alpha[..., None] * (1.0 - t)
+        airlight = self.airlight_toward(view, H, W).detach().to(colour)
+        return colour * t + airlight * alpha[..., None] * (1.0 - t)
 
     def rise(self, view: int, rays: torch.Tensor) -> torch.Tensor:
         """[H, W] height gained per metre along each pixel's ray of view ``view``, from its ray lengths per unit of
@@ -283,6 +341,8 @@ class FogAnalytic(WeatherModel):
             terms.append(self.config.record_prior_weight * ((self.log_beta - self.prior_log_beta) ** 2).mean())
         if self.patch_log_scale.requires_grad and self.config.patches_weight > 0:
             terms.append(self.config.patches_weight * (self.patch_log_scale[view] ** 2).mean())
+        if self.airlight_sh.requires_grad and self.config.airlight_weight > 0:
+            terms.append(self.config.airlight_weight * (self.airlight_sh**2).mean())
         return sum(terms) if terms else None
 
     def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
@@ -290,6 +350,9 @@ class FogAnalytic(WeatherModel):
         patches never learned loads into any grid."""
         state = dict(state_dict)
         state.setdefault("height_rate", torch.zeros_like(self.height_rate))
+        saved_sh = state.get("airlight_sh")
+        if saved_sh is None or (saved_sh.shape != self.airlight_sh.shape and not saved_sh.any()):  # one airlight
+            state["airlight_sh"] = torch.zeros_like(self.airlight_sh)
         saved = state.get("patch_log_scale")
         if saved is None or (saved.shape != self.patch_log_scale.shape and not saved.any()):  # unlearned: any grid
             state["patch_log_scale"] = torch.zeros_like(self.patch_log_scale)
@@ -308,7 +371,23 @@ class FogAnalytic(WeatherModel):
         if self.layered:
             k = float(self.height_rate.detach()) / 100.0
             out["scale_height_m"] = None if k == 0 else round(1.0 / k, 1)
+        if self.directional:
+            seen = self.airlight_over_sphere()
+            out["airlight_range"] = [
+                [round(float(a), 4) for a in seen.amin(0)],
+                [round(float(a), 4) for a in seen.amax(0)],
+            ]
         return out
+
+    def airlight_over_sphere(self, count: int = 256) -> torch.Tensor:
+        """[count, 3] the airlight towards ``count`` directions spread evenly over the sphere (a Fibonacci lattice)."""
+        i = torch.arange(count, dtype=torch.float64) + 0.5
+        z = 1.0 - 2.0 * i / count
+        phi = i * math.pi * (3.0 - math.sqrt(5.0))
+        r = torch.sqrt(1.0 - z**2)
+        directions = torch.stack([r * torch.cos(phi), r * torch.sin(phi), z], dim=-1)
+        basis = direction_basis(self.config.airlight_degree, directions).to(self.airlight_sh)
+        return torch.sigmoid(self.airlight_logit + basis @ self.airlight_sh).detach()
 
     def transmittance(self, points: torch.Tensor, view: int) -> torch.Tensor:
         """[N] transmittance of the fog between view ``view``'s camera and world points [N, 3] (exp(−β·d) scaled by

@@ -19,7 +19,7 @@ from metegs.losses.photometric import PhotometricLossConfig
 from metegs.models.gtn import GTNConfig
 from metegs.render import RenderSettings
 from metegs.weather.conditions import ConditionsConfig
-from metegs.weather.fog_analytic import FogAnalytic
+from metegs.weather.fog_analytic import FogAnalytic, FogAnalyticConfig
 from metegs.weather.learnable import LearnableTransients
 
 
@@ -138,6 +138,27 @@ def test_fog_record_prior_is_on_where_the_views_see_the_scene_from_one_distance(
     fog = next(m for m in facing.weather_models if m.name == "fog-analytic")
     assert fog.use_record_prior and float(fog.prior(0).detach()) == 0.0
     assert facing.decisions["fog-analytic layers"].startswith("off:") and not fog.layered
+
+
+def test_the_airlight_learns_its_directions_only_where_the_views_see_the_scene_along_many(tmp_path):
+    """Asked to (opt-in), around the built-in scene in fog the airlight learns how it changes with the viewing
+    direction (in the weather optimiser); a forward-facing rig sees each surface along one direction and keeps one
+    airlight, as every run does by default."""
+    conditions = ConditionsConfig(precip_mm_h=0.0, visibility_m=300.0, metres_per_unit=100.0)
+    default = tiny_metegs(tmp_path / "default", conditions=conditions, max_steps=1, clean_supervision=False).setup()
+    assert default.decisions["fog-analytic airlight"].startswith("one for every direction (--fog-analytic.airlight")
+    assert not next(m for m in default.weather_models if m.name == "fog-analytic").directional
+    asked = dict(
+        conditions=conditions, max_steps=1, clean_supervision=False, fog_analytic=FogAnalyticConfig(airlight_degree=2)
+    )
+    around = tiny_metegs(tmp_path / "around", **asked).setup()
+    assert around.decisions["fog-analytic airlight"].startswith("changes with the viewing direction: spherical")
+    fog = next(m for m in around.weather_models if m.name == "fog-analytic")
+    learned = {id(p) for o in around.method_optimizers.values() for g in o.param_groups for p in g["params"]}
+    assert fog.directional and id(fog.airlight_sh) in learned
+    facing = tiny_metegs(tmp_path / "facing", **asked).setup(scene=forward_facing(around.scene))
+    assert facing.decisions["fog-analytic airlight"].startswith("one for every direction: the views see a scene")
+    assert not next(m for m in facing.weather_models if m.name == "fog-analytic").directional
 
 
 def test_blind_the_record_holds_beta_where_heavy_rain_falls_through_dense_fog(tmp_path):

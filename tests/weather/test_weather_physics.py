@@ -2,18 +2,19 @@
 
 import functools
 import math
+from dataclasses import replace
 
 import pytest
 import torch
 
 from metegs.cameras import Cameras
 from metegs.gaussians.model import GaussianSet
-from metegs.gaussians.sh import rgb_to_sh
+from metegs.gaussians.sh import SH_C1, SH_C2, rgb_to_sh
 from metegs.meteo import CameraSpec, theta_from_values
 from metegs.render.base import RenderOutput, RenderSettings
 from metegs.render.torch_backend import TorchRasterizer
 from metegs.weather import WeatherScene, build_weather_models, render_with_weather
-from metegs.weather.fog_analytic import FogAnalytic, FogAnalyticConfig
+from metegs.weather.fog_analytic import FogAnalytic, FogAnalyticConfig, direction_basis, world_directions
 from metegs.weather.fog_gaussians import FogGaussiansConfig
 from metegs.weather.rain_streaks import RainStreaks, RainStreaksConfig
 
@@ -217,10 +218,66 @@ def test_height_fog_optical_depth_matches_the_integral_along_each_ray():
     assert fog.summary()["scale_height_m"] == pytest.approx(50.0)
 
 
+def tilted_cameras(degrees: tuple[float, ...]) -> Cameras:
+    """Cameras at the origin looking along +z tilted up by each of ``degrees`` (world up is -y)."""
+    c2w = torch.eye(4).repeat(len(degrees), 1, 1)
+    for i, a in enumerate(math.radians(d) for d in degrees):
+        c2w[i, 1:3, 1:3] = torch.tensor([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+    return Cameras.create(c2w, F, F, W / 2, H / 2, W, H)
+
+
+def test_direction_basis_is_the_real_spherical_harmonics_without_the_constant():
+    z, x = torch.tensor([0.0, 0.0, 1.0]), torch.tensor([1.0, 0.0, 0.0])
+    assert direction_basis(1, z).tolist() == pytest.approx([0.0, SH_C1, 0.0])  # -C1·y, C1·z, -C1·x
+    assert direction_basis(1, x).tolist() == pytest.approx([0.0, 0.0, -SH_C1])
+    two = direction_basis(2, torch.stack([z, x]))
+    assert two.shape == (2, 8) and two[0, 5].item() == pytest.approx(2 * SH_C2[2])  # (2z² − x² − y²)·C
+    assert two[1, 7].item() == pytest.approx(SH_C2[4])  # (x² − y²)·C
+
+
+def test_the_airlight_learns_how_it_changes_with_the_viewing_direction():
+    """Where nothing is rendered a view shows the airlight. Under a sky brighter at the horizon than above and below it
+    (real fog, and the third generator's), one airlight errs by the spread and the learned directions fit it; until
+    they learn, the medium renders the one airlight exactly as before."""
+    theta = theta_from_values(0.0, visibility_m=300.0, fog_kind="fog", camera=spec())
+    tilts = (-40.0, -15.0, 0.0, 20.0, 45.0)
+    scene = WeatherScene(tilted_cameras(tilts), torch.tensor([0.0, -1.0, 0.0]), 1.0, None, seed=3)
+    fog = FogAnalytic(FogAnalyticConfig(airlight=(0.8, 0.8, 0.8), airlight_degree=2), theta, scene)
+    sky = replace(flat_view(0.0), alpha=torch.zeros(H, W))
+    assert torch.equal(fog.apply(torch.zeros(H, W, 3), sky, 0, RenderSettings()), fog.airlight.expand(H, W, 3))
+    targets = []
+    for i in range(len(tilts)):
+        elevation = world_directions(scene.cameras[i], H, W) @ torch.tensor([0.0, -1.0, 0.0])
+        targets.append(0.8 * (0.85 + 0.15 * (1.0 - elevation.abs())))
+    one = torch.stack(targets).mean()
+    one_error = float(torch.stack([(t - one).abs().mean() for t in targets]).mean())
+    assert fog.learn_directions() and fog.directional
+    optimiser = torch.optim.Adam([fog.airlight_sh, fog.airlight_logit], lr=0.05)
+    for step in range(300):
+        i = step % len(tilts)
+        loss = (fog.apply(torch.zeros(H, W, 3), sky, i, RenderSettings())[..., 0] - targets[i]).abs().mean()
+        optimiser.zero_grad()
+        loss.backward()
+        optimiser.step()
+    with torch.no_grad():
+        errors = [
+            (fog.apply(torch.zeros(H, W, 3), sky, i, RenderSettings())[..., 0] - t).abs().mean()
+            for i, t in enumerate(targets)
+        ]
+    assert float(torch.stack(errors).mean()) < 0.4 * one_error  # degree 2 rounds the kink at the horizon (0.31)
+    low, high = fog.summary()["airlight_range"]
+    assert high[0] - low[0] > 0.05  # the spread is reported
+    fixed = FogAnalytic(FogAnalyticConfig(learnable=False), theta, scene)
+    assert (
+        not fixed.learn_directions()
+        and not FogAnalytic(FogAnalyticConfig(airlight_degree=0), theta, scene).learn_directions()
+    )
+
+
 def test_old_checkpoints_load_as_a_uniform_medium_and_layers_stay_off_when_asked():
     theta = theta_from_values(0.0, visibility_m=300.0, fog_kind="fog", camera=spec())
     fog = FogAnalytic(FogAnalyticConfig(), theta, weather_scene())
-    old = {k: v for k, v in fog.state_dict().items() if k != "height_rate"}  # saved before the layers
+    old = {k: v for k, v in fog.state_dict().items() if k not in ("height_rate", "airlight_sh")}  # saved before both
     fog.learn_layers()
     with torch.no_grad():
         fog.height_rate.fill_(3.0)
@@ -229,6 +286,7 @@ def test_old_checkpoints_load_as_a_uniform_medium_and_layers_stay_off_when_asked
     fresh = FogAnalytic(FogAnalyticConfig(), theta, weather_scene())
     fresh.load_state_dict(old)
     assert not fresh.layered and fresh.summary().keys() == {"beta_per_m", "record_beta_per_m", "airlight"}
+    assert not fresh.directional  # one airlight for every direction
     fixed = FogAnalytic(FogAnalyticConfig(layered=False), theta, weather_scene())
     assert not fixed.learn_layers() and not fixed.height_rate.requires_grad
 
