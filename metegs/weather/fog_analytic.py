@@ -38,11 +38,18 @@ from metegs.weather.base import SynthesisRequest, WeatherModel, WeatherModelConf
 from metegs.weather.medium import choose_airlight, fog_called_for, fog_extinction_rgb
 
 
-def ray_lengths(camera, height: int, width: int) -> torch.Tensor:
-    """Length of each pixel ray per unit of camera z. camera: one view -> [H, W]."""
+def camera_rays(camera, height: int, width: int) -> torch.Tensor:
+    """[H, W, 3] each pixel's ray in camera axes per unit of camera z, ((x − cx)/fx, (y − cy)/fy, 1). camera: one
+    view."""
     fx, fy, cx, cy = (float(v[0]) for v in (camera.fx, camera.fy, camera.cx, camera.cy))
     ys, xs = torch.meshgrid(torch.arange(height) + 0.5, torch.arange(width) + 0.5, indexing="ij")
-    return torch.sqrt(((xs - cx) / fx) ** 2 + ((ys - cy) / fy) ** 2 + 1.0)
+    return torch.stack([(xs - cx) / fx, (ys - cy) / fy, torch.ones_like(xs)], dim=-1)
+
+
+def ray_lengths(camera, height: int, width: int) -> torch.Tensor:
+    """Length of each pixel ray per unit of camera z. camera: one view -> [H, W]."""
+    rays = camera_rays(camera, height, width)
+    return torch.sqrt(rays[..., 0] ** 2 + rays[..., 1] ** 2 + 1.0)
 
 
 def fog_composite(
@@ -118,10 +125,7 @@ class FogAnalyticConfig(WeatherModelConfig):
 
 def world_directions(camera, height: int, width: int) -> torch.Tensor:
     """[H, W, 3] unit world direction of each pixel's ray. camera: one view."""
-    fx, fy, cx, cy = (float(v[0]) for v in (camera.fx, camera.fy, camera.cx, camera.cy))
-    ys, xs = torch.meshgrid(torch.arange(height) + 0.5, torch.arange(width) + 0.5, indexing="ij")
-    rays = torch.stack([(xs - cx) / fx, (ys - cy) / fy, torch.ones_like(xs)], dim=-1)
-    rays = rays @ camera.camera_to_worlds[0, :3, :3].float().T
+    rays = camera_rays(camera, height, width) @ camera.camera_to_worlds[0, :3, :3].float().T
     return rays / rays.norm(dim=-1, keepdim=True)
 
 
@@ -227,7 +231,7 @@ class FogAnalytic(WeatherModel):
         basis = self._directions.get(view)
         if basis is None or basis.shape[:2] != (height, width):  # the cameras are fixed: one basis per view
             directions = world_directions(self.scene.cameras[view], height, width)
-            basis = direction_basis(self.config.airlight_degree, directions).to(self.airlight_sh)
+            basis = direction_basis(self.config.airlight_degree, directions)
             self._directions[view] = basis
         return torch.sigmoid(self.airlight_logit + basis.to(self.airlight_sh) @ self.airlight_sh)
 
