@@ -163,6 +163,7 @@ def point_observations(
     )
 
 
+@torch.enable_grad()  # a run loaded for inference (`load_run` under no_grad) fits its medium all the same
 def fit_medium(
     obs: PointObservations,
     beta_start: float,

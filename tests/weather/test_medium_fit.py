@@ -60,6 +60,14 @@ def test_the_layered_fit_holds_a_given_airlight():
     assert fit_medium(obs, beta_start=0.005, airlight=airlight + 0.05).beta_per_m < 0.97 * fit.beta_per_m
 
 
+def test_the_fit_runs_where_gradients_are_off():
+    """A run loaded for rendering under ``torch.no_grad()`` fits its medium as training does."""
+    obs, airlight = layered_observations(1, streaked=0.0)
+    with torch.no_grad():
+        fit = fit_medium(obs, beta_start=0.005, airlight=airlight, steps=50)
+    assert fit == fit_medium(obs, beta_start=0.005, airlight=airlight, steps=50)
+
+
 def uniform_observations(beta: float, seed: int = 0) -> tuple[PointObservations, torch.Tensor]:
     """300 points seen from 8 distances each (20-200 m) through a uniform medium of extinction ``beta`` under
     airlight (0.8, 0.85, 0.9), a tenth of the observations brightened as by streaks -> (observations, airlight)."""
