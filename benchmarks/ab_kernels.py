@@ -45,8 +45,13 @@ def build_revision(rev: str, build_dir: Path):
     out.mkdir(exist_ok=True)
     cflags, ldflags = cpu_backend.compile_flags()  # as the working tree's build: the same threads for both sides
     return cpp_extension.load(
-        name=name, sources=sources, extra_include_paths=[str(src)],
-        extra_ldflags=ldflags, extra_cflags=cflags, build_directory=str(out), verbose=False,
+        name=name,
+        sources=sources,
+        extra_include_paths=[str(src)],
+        extra_ldflags=ldflags,
+        extra_cflags=cflags,
+        build_directory=str(out),
+        verbose=False,
     )
 
 
@@ -61,16 +66,19 @@ def op_calls(ext, n: int, width: int, height: int):
     fwd = ext.forward(m2, con, g.opacities, col, dep, ids, offsets, *tiles, width, height, rows)
     gen = torch.Generator().manual_seed(1)
     gc, ga, gd = (torch.rand(t.shape, generator=gen) for t in fwd[:3])
-    bwd = ext.backward(m2, con, g.opacities, col, dep, ids, offsets, fwd[3], fwd[4], gc, ga, gd, *tiles, width, height,
-                       rows)
+    bwd = ext.backward(
+        m2, con, g.opacities, col, dep, ids, offsets, fwd[3], fwd[4], gc, ga, gd, *tiles, width, height, rows
+    )
     return {
         "project": lambda: ext.project_forward(g.means, g.quats, g.scales, g.opacities, g.sh, *args),
         "bin": lambda: ext.bin_tiles(m2, con, g.opacities, extents, dep, width, height, True),
         "composite": lambda: ext.forward(m2, con, g.opacities, col, dep, ids, offsets, *tiles, width, height, rows),
-        "composite_bwd": lambda: ext.backward(m2, con, g.opacities, col, dep, ids, offsets, fwd[3], fwd[4], gc, ga, gd,
-                                              *tiles, width, height, rows),
-        "project_bwd": lambda: ext.project_backward(g.means, g.quats, g.scales, g.opacities, g.sh, *args, bwd[0],
-                                                    bwd[1], bwd[4], bwd[3]),
+        "composite_bwd": lambda: ext.backward(
+            m2, con, g.opacities, col, dep, ids, offsets, fwd[3], fwd[4], gc, ga, gd, *tiles, width, height, rows
+        ),
+        "project_bwd": lambda: ext.project_backward(
+            g.means, g.quats, g.scales, g.opacities, g.sh, *args, bwd[0], bwd[1], bwd[4], bwd[3]
+        ),
     }
 
 
@@ -78,8 +86,11 @@ def difference(a, b) -> str:
     pairs = [(x, y) for x, y in zip(a, b) if isinstance(x, torch.Tensor)]
     if all(torch.equal(x, y) for x, y in pairs):
         return "identical"
-    worst = max(((x.double() - y.double()).abs().max() / y.double().abs().max().clamp_min(1e-30)).item()
-                for x, y in pairs if x.shape == y.shape)
+    worst = max(
+        ((x.double() - y.double()).abs().max() / y.double().abs().max().clamp_min(1e-30)).item()
+        for x, y in pairs
+        if x.shape == y.shape
+    )
     return f"max rel diff {worst:.1e}"
 
 
@@ -106,8 +117,10 @@ def main() -> None:
                     outs[side] = calls[side][op]()
                     times[side].append(time.perf_counter() - t0)
             ta, tb = (1e3 * statistics.median(times[s][1:]) for s in ("A", "B"))
-            print(f"{n:>6} {width}x{height} {op:<13} A {ta:8.2f} ms  B {tb:8.2f} ms  A/B {ta / tb:5.2f}x  "
-                  f"{difference(outs['B'], outs['A'])}")
+            print(
+                f"{n:>6} {width}x{height} {op:<13} A {ta:8.2f} ms  B {tb:8.2f} ms  A/B {ta / tb:5.2f}x  "
+                f"{difference(outs['B'], outs['A'])}"
+            )
 
 
 if __name__ == "__main__":

@@ -41,7 +41,13 @@ def browser(window: str = "1280,800"):
     from selenium.webdriver.chrome.service import Service
 
     options = Options()
-    for arg in ("--headless=new", "--no-sandbox", "--disable-gpu", f"--window-size={window}", "--disable-dev-shm-usage"):
+    for arg in (
+        "--headless=new",
+        "--no-sandbox",
+        "--disable-gpu",
+        f"--window-size={window}",
+        "--disable-dev-shm-usage",
+    ):
         options.add_argument(arg)
     binary = shutil.which("chromium") or shutil.which("chromium-browser") or shutil.which("google-chrome")
     if binary:
@@ -63,17 +69,33 @@ def browser_cpu_seconds() -> float:
     return total / os.sysconf("SC_CLK_TCK")
 
 
-def train_rate(steps: int, threads: int, with_viewer: bool, out: Path, settle_s: float, window: str,
-               with_browser: bool = True, viewer_options: dict | None = None) -> dict:
+def train_rate(
+    steps: int,
+    threads: int,
+    with_viewer: bool,
+    out: Path,
+    settle_s: float,
+    window: str,
+    with_browser: bool = True,
+    viewer_options: dict | None = None,
+) -> dict:
     """Steps/s of one 3dgs run after the warm-up, with or without the viewer and a browser on it."""
     from metegs.data.config import DatasetConfig, SyntheticSceneConfig
     from metegs.registry import registry
 
     base = registry("method").get("3dgs")()
     config = replace(
-        base, max_steps=steps, output_dir=out, experiment_name="viewer" if with_viewer else "alone", progress=False,
-        dataset=DatasetConfig(synthetic=SyntheticSceneConfig()), eval_every=0.0, checkpoint_every=0,
-        save_renders=False, device="cpu", threads=threads,
+        base,
+        max_steps=steps,
+        output_dir=out,
+        experiment_name="viewer" if with_viewer else "alone",
+        progress=False,
+        dataset=DatasetConfig(synthetic=SyntheticSceneConfig()),
+        eval_every=0.0,
+        checkpoint_every=0,
+        save_renders=False,
+        device="cpu",
+        threads=threads,
     )
     trainer = config.setup()
     stamps: list[tuple[int, float]] = []
@@ -101,8 +123,14 @@ def train_rate(steps: int, threads: int, with_viewer: bool, out: Path, settle_s:
                 driver.quit()
             viewer.close()
     (s0, t0), (s1, t1) = next(p for p in stamps if p[0] >= WARMUP_STEPS), stamps[-1]
-    return {"viewer": with_viewer, "it_s": (s1 - s0) / (t1 - t0), "frames": frames, "gaussians": len(trainer.model),
-            "browser_cpu": browser_share, "browser": with_browser}
+    return {
+        "viewer": with_viewer,
+        "it_s": (s1 - s0) / (t1 - t0),
+        "frames": frames,
+        "gaussians": len(trainer.model),
+        "browser_cpu": browser_share,
+        "browser": with_browser,
+    }
 
 
 def viewer_options(pairs: list[str]) -> dict:
@@ -123,8 +151,22 @@ def run_worker(mode: str, args: argparse.Namespace, out: Path) -> dict:
     env.update(parse_options(args.env, "--env"))
     if mode == "viewer":
         env.update({k: v for k, v in thread_env(["--viewer"]).items() if k not in env})
-    cmd = [sys.executable, __file__, "--worker", mode, "--steps", str(args.steps), "--threads", str(args.threads),
-           "--settle", str(args.settle), "--window", args.window, "--out", str(out)]
+    cmd = [
+        sys.executable,
+        __file__,
+        "--worker",
+        mode,
+        "--steps",
+        str(args.steps),
+        "--threads",
+        str(args.threads),
+        "--settle",
+        str(args.settle),
+        "--window",
+        args.window,
+        "--out",
+        str(out),
+    ]
     cmd += ["--no-browser"] if args.no_browser else []
     for kv in args.viewer:
         cmd += ["--viewer", kv]
@@ -144,17 +186,35 @@ def main() -> None:
     parser.add_argument("--settle", type=float, default=10.0, help="seconds for the page to start before training")
     parser.add_argument("--window", default="1280,800", help="browser window size WIDTH,HEIGHT (CSS pixels)")
     parser.add_argument("--no-browser", action="store_true", help="attach the viewer but open no browser on it")
-    parser.add_argument("--viewer", action="append", default=[], metavar="FIELD=VALUE",
-                        help="a ViewerConfig field for the watched runs (repeatable), e.g. live_refresh_s=6")
-    parser.add_argument("--env", action="append", default=[], metavar="KEY=VALUE",
-                        help="environment variable for both modes' processes (repeatable), e.g. GOMP_SPINCOUNT=0")
+    parser.add_argument(
+        "--viewer",
+        action="append",
+        default=[],
+        metavar="FIELD=VALUE",
+        help="a ViewerConfig field for the watched runs (repeatable), e.g. live_refresh_s=6",
+    )
+    parser.add_argument(
+        "--env",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="environment variable for both modes' processes (repeatable), e.g. GOMP_SPINCOUNT=0",
+    )
     parser.add_argument("--json", type=Path, default=None, help="also write the records and the summary here")
     parser.add_argument("--worker", choices=("alone", "viewer"), default=None, help=argparse.SUPPRESS)
     parser.add_argument("--out", type=Path, default=None, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.worker is not None:  # one run, in this process: its record on the last stdout line
-        rec = train_rate(args.steps, args.threads, args.worker == "viewer", args.out, args.settle, args.window,
-                         not args.no_browser, viewer_options(args.viewer))
+        rec = train_rate(
+            args.steps,
+            args.threads,
+            args.worker == "viewer",
+            args.out,
+            args.settle,
+            args.window,
+            not args.no_browser,
+            viewer_options(args.viewer),
+        )
         print(json.dumps(rec))
         return
     from metegs.errors import ConfigError
@@ -172,15 +232,22 @@ def main() -> None:
             for mode in ("alone", "viewer"):
                 rec = run_worker(mode, args, Path(tmp))
                 records.append({**rec, "repeat": rep})
-                console.print(f"repeat {rep}: {mode} {rec['it_s']:.2f} it/s, frames {rec['frames']}"
-                              + ("" if rec["browser_cpu"] is None else f", browser {rec['browser_cpu']:.2f} of a core")
-                              + (f", {rec['env']}" if rec["env"] else ""))
+                console.print(
+                    f"repeat {rep}: {mode} {rec['it_s']:.2f} it/s, frames {rec['frames']}"
+                    + ("" if rec["browser_cpu"] is None else f", browser {rec['browser_cpu']:.2f} of a core")
+                    + (f", {rec['env']}" if rec["env"] else "")
+                )
     alone = statistics.median(r["it_s"] for r in records if not r["viewer"])
     watched = statistics.median(r["it_s"] for r in records if r["viewer"])
     browser_cpu = [r["browser_cpu"] for r in records if r["browser_cpu"] is not None]
     summary = {
-        "threads": args.threads, "steps": args.steps, "env": args.env,
-        "alone_it_s": alone, "viewer_it_s": watched, "ratio": watched / alone, "loss_percent": 100 * (1 - watched / alone),
+        "threads": args.threads,
+        "steps": args.steps,
+        "env": args.env,
+        "alone_it_s": alone,
+        "viewer_it_s": watched,
+        "ratio": watched / alone,
+        "loss_percent": 100 * (1 - watched / alone),
         "browser_cpu": statistics.median(browser_cpu) if browser_cpu else None,
     }
     table = Table(title=f"3dgs on the synthetic scene, {args.threads} thread(s), median of {args.repeats}")

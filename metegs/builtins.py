@@ -2,6 +2,8 @@
 
 from metegs.registry import registry
 
+# One registration per line, a table to read down.
+# fmt: off
 _parsers = registry("parser")
 _parsers.register("colmap", "metegs.data.parsers.colmap:ColmapParser", description="COLMAP sparse model (binary or text), through pycolmap")
 _parsers.register("nerfstudio", "metegs.data.parsers.nerfstudio:NerfstudioParser", description="nerfstudio transforms.json")
@@ -38,3 +40,4 @@ _restorers.register("dcp", "metegs.restore.dehaze:DarkChannelPriorConfig", descr
 _restorers.register("kang2012", "metegs.restore.derain:KangDerainConfig", description="rain-streak removal by bilateral decomposition, dictionary learning and HOG clustering (Kang et al. 2012)")
 _restorers.register("restormer", "metegs.restore.learned:RestormerConfig", description="Restormer deraining from user-given weights (Zamir et al. 2022)")
 _restorers.register("dehazeformer", "metegs.restore.learned:DehazeFormerConfig", description="DehazeFormer dehazing from user-given weights (Song et al. 2023)")
+# fmt: on

@@ -39,8 +39,10 @@ class GaussianSet:
         k = max(s.sh.shape[1] for s in sets)
         pad = lambda sh: torch.cat([sh, sh.new_zeros(sh.shape[0], k - sh.shape[1], 3)], 1)  # noqa: E731
         return GaussianSet(
-            torch.cat([s.means for s in sets]), torch.cat([s.quats for s in sets]),
-            torch.cat([s.scales for s in sets]), torch.cat([s.opacities for s in sets]),
+            torch.cat([s.means for s in sets]),
+            torch.cat([s.quats for s in sets]),
+            torch.cat([s.scales for s in sets]),
+            torch.cat([s.opacities for s in sets]),
             torch.cat([pad(s.sh) for s in sets]),
         )
 

@@ -50,8 +50,16 @@ def _import_and_smoke_test():
     scales = torch.full((2, 3), 0.1, device=device)
     K = torch.tensor([[[20.0, 0, 8], [0, 20.0, 8], [0, 0, 1]]], device=device)
     colors, _, _ = gsplat.rasterization(
-        means, quats, scales, torch.full((2,), 0.8, device=device), torch.rand(2, 3, device=device),
-        torch.eye(4, device=device)[None], K, 16, 16, packed=False,
+        means,
+        quats,
+        scales,
+        torch.full((2,), 0.8, device=device),
+        torch.rand(2, 3, device=device),
+        torch.eye(4, device=device)[None],
+        K,
+        16,
+        16,
+        packed=False,
     )
     torch.cuda.synchronize()
     if not torch.isfinite(colors).all():
@@ -92,15 +100,29 @@ class GsplatRasterizer:
         campos = camera.centers[0].to(g.means)
         # Non-finite Gaussians: moved onto the camera centre (behind the near plane) so that gsplat culls
         # them as the reference does; torch.where keeps their gradients at zero.
-        finite = (torch.isfinite(g.means).all(1) & torch.isfinite(g.quats).all(1) & torch.isfinite(g.scales).all(1))
+        finite = torch.isfinite(g.means).all(1) & torch.isfinite(g.quats).all(1) & torch.isfinite(g.scales).all(1)
         means = torch.where(finite[:, None], g.means, campos.expand_as(g.means))
         quats = torch.where(finite[:, None], g.quats, g.quats.new_tensor([1.0, 0.0, 0.0, 0.0]))
         scales = torch.where(finite[:, None], g.scales, torch.ones_like(g.scales))
         sh_degree = resolve_sh_degree(g, s)
         render, alphas, meta = gsplat.rasterization(
-            means, quats, scales, g.opacities, g.sh[:, : (sh_degree + 1) ** 2], viewmat[None], K[None],
-            width, height, near_plane=s.near, far_plane=s.far, eps2d=s.eps2d, sh_degree=sh_degree,
-            packed=False, tile_size=16, render_mode="RGB+ED", rasterize_mode="classic",
+            means,
+            quats,
+            scales,
+            g.opacities,
+            g.sh[:, : (sh_degree + 1) ** 2],
+            viewmat[None],
+            K[None],
+            width,
+            height,
+            near_plane=s.near,
+            far_plane=s.far,
+            eps2d=s.eps2d,
+            sh_degree=sh_degree,
+            packed=False,
+            tile_size=16,
+            render_mode="RGB+ED",
+            rasterize_mode="classic",
         )
         alpha = alphas[0, ..., 0]
         color = render[0, ..., :3]
@@ -108,6 +130,7 @@ class GsplatRasterizer:
         means2d_full = meta["means2d"]  # [1, N, 2]
         means2d = means2d_full.detach()[0]
         if means2d_full.requires_grad:
+
             def keep_grad(grad: torch.Tensor) -> None:
                 means2d.grad = grad[0].detach().clone() if means2d.grad is None else means2d.grad + grad[0]
 

@@ -38,15 +38,28 @@ def resolve_sh_degree(g: GaussianSet, settings: RenderSettings) -> int:
 
 
 def finish_render(
-    color: torch.Tensor, alpha: torch.Tensor, depth_sum: torch.Tensor, settings: RenderSettings,
-    radii: torch.Tensor, means2d: torch.Tensor, num_intersections: int,
+    color: torch.Tensor,
+    alpha: torch.Tensor,
+    depth_sum: torch.Tensor,
+    settings: RenderSettings,
+    radii: torch.Tensor,
+    means2d: torch.Tensor,
+    num_intersections: int,
 ) -> RenderOutput:
     """Background and expected depth. color [H, W, 3], alpha [H, W], depth_sum [H, W] -> RenderOutput."""
     rgb = color + (1.0 - alpha)[..., None] * settings.background_tensor(color)
     depth = depth_sum / alpha.clamp_min(1e-10)
     height, width = alpha.shape
-    return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, radii=radii, means2d=means2d,
-                        num_intersections=num_intersections, width=width, height=height)
+    return RenderOutput(
+        rgb=rgb,
+        alpha=alpha,
+        depth=depth,
+        radii=radii,
+        means2d=means2d,
+        num_intersections=num_intersections,
+        width=width,
+        height=height,
+    )
 
 
 def rasterize(
@@ -58,13 +71,24 @@ def rasterize(
     viewmat = camera.world_to_cameras()[0].to(gaussians.means)
     K = camera.intrinsics()[0].to(gaussians.means)
     proj = project_gaussians(
-        gaussians.means, gaussians.quats, gaussians.scales, viewmat, K, width, height,
-        near=s.near, far=s.far, eps2d=s.eps2d, opacities=gaussians.opacities,
+        gaussians.means,
+        gaussians.quats,
+        gaussians.scales,
+        viewmat,
+        K,
+        width,
+        height,
+        near=s.near,
+        far=s.far,
+        eps2d=s.eps2d,
+        opacities=gaussians.opacities,
     )
     means2d = proj.means2d
     if means2d.requires_grad:
         means2d.retain_grad()
     bins: TileBins = bin_gaussians(means2d.detach(), proj.extents, proj.depths.detach(), width, height)
     colors = gaussian_colors(gaussians, camera.centers[0].to(gaussians.means), resolve_sh_degree(gaussians, s))
-    color, alpha, depth_sum = composite(means2d, proj.conics, gaussians.opacities, colors, proj.depths, bins, width, height)
+    color, alpha, depth_sum = composite(
+        means2d, proj.conics, gaussians.opacities, colors, proj.depths, bins, width, height
+    )
     return finish_render(color, alpha, depth_sum, s, proj.radii, means2d, bins.num_intersections)

@@ -43,8 +43,14 @@ def screen_footprints(gaussians: GaussianSet, camera) -> torch.Tensor:
     W, H = int(camera.width[0]), int(camera.height[0])
     with torch.no_grad():
         p = project_gaussians(
-            gaussians.means.float().cpu(), gaussians.quats.float().cpu(), gaussians.scales.float().cpu(),
-            camera.world_to_cameras()[0].float().cpu(), camera.intrinsics()[0].float().cpu(), W, H, eps2d=0.0,
+            gaussians.means.float().cpu(),
+            gaussians.quats.float().cpu(),
+            gaussians.scales.float().cpu(),
+            camera.world_to_cameras()[0].float().cpu(),
+            camera.intrinsics()[0].float().cpu(),
+            W,
+            H,
+            eps2d=0.0,
         )
         a, b, c = p.conics.double().unbind(-1)
         det_conic = a * c - b * b

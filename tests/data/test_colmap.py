@@ -34,8 +34,13 @@ def look_at_w2c(center: np.ndarray, target=np.zeros(3), up=np.array([0.0, 0.0, 1
 
 
 def make_model(
-    root: Path, model: str = "PINHOLE", params=None, n_images: int = 3, text: bool = False,
-    folder: str = "sparse/0", write_images: bool = True,
+    root: Path,
+    model: str = "PINHOLE",
+    params=None,
+    n_images: int = 3,
+    text: bool = False,
+    folder: str = "sparse/0",
+    write_images: bool = True,
 ) -> pycolmap.Reconstruction:
     """Write a COLMAP model with ``n_images`` cameras on a circle around the origin into ``root/folder``."""
     rec = pycolmap.Reconstruction()

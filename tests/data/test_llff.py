@@ -65,10 +65,12 @@ def test_ethiopianhead_masks_agree_with_poses(head):
     around 0.2-0.3 instead of about 0.55 at this coarse resolution.
     """
     size = 125
-    masks = np.stack([
-        cv2.resize(cv2.imread(str(p), cv2.IMREAD_GRAYSCALE), (size, size), interpolation=cv2.INTER_AREA) > 127
-        for p in head.mask_paths
-    ])
+    masks = np.stack(
+        [
+            cv2.resize(cv2.imread(str(p), cv2.IMREAD_GRAYSCALE), (size, size), interpolation=cv2.INTER_AREA) > 127
+            for p in head.mask_paths
+        ]
+    )
     cams = head.cameras.resized(size, size)
     K = cams.intrinsics()[0].double().numpy()
     w2c = cams.world_to_cameras().double().numpy()

@@ -10,7 +10,13 @@ from metegs.errors import DataError
 
 
 def build(**kw):
-    return parse_scene(None, None, DatasetConfig(synthetic=SyntheticSceneConfig(**{"width": 64, "height": 48, "num_views": 16, "num_points": 500, **kw})))
+    return parse_scene(
+        None,
+        None,
+        DatasetConfig(
+            synthetic=SyntheticSceneConfig(**{"width": 64, "height": 48, "num_views": 16, "num_points": 500, **kw})
+        ),
+    )
 
 
 @pytest.fixture(scope="module")
@@ -126,8 +132,12 @@ def test_depth_is_consistent_across_views(scene):
         fx, fy = x - x0, y - y0
         dm = scene.depths[b].astype(np.float64)
         corners = np.stack([dm[y0, x0], dm[y0, x0 + 1], dm[y0 + 1, x0], dm[y0 + 1, x0 + 1]])
-        seen = (corners[0] * (1 - fx) * (1 - fy) + corners[1] * fx * (1 - fy)
-                + corners[2] * (1 - fx) * fy + corners[3] * fx * fy)
+        seen = (
+            corners[0] * (1 - fx) * (1 - fy)
+            + corners[1] * fx * (1 - fy)
+            + corners[2] * (1 - fx) * fy
+            + corners[3] * fx * fy
+        )
         smooth = corners.max(0) < 1.1 * corners.min(0)  # away from silhouettes and occlusion boundaries
         rel = (seen - z)[smooth] / z[smooth]
         assert smooth.sum() > 0.5 * inside.sum()
@@ -164,8 +174,11 @@ def test_parser_protocol_and_fields(scene):
 
 
 def test_no_test_views_and_no_points():
-    sc = parse_scene(None, "synthetic", DatasetConfig(
-        test_every=0, synthetic=SyntheticSceneConfig(width=16, height=12, num_views=3, num_points=0)))
+    sc = parse_scene(
+        None,
+        "synthetic",
+        DatasetConfig(test_every=0, synthetic=SyntheticSceneConfig(width=16, height=12, num_views=3, num_points=0)),
+    )
     assert sc.test_indices == [] and sc.train_indices == [0, 1, 2]
     assert sc.points.shape == (0, 3) and sc.point_colors.shape == (0, 3)
 

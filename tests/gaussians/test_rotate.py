@@ -140,4 +140,3 @@ def test_run_scene_ply_of_the_z_up_builtin_scene_is_written_upright(tmp_path):
     with warnings.catch_warnings():  # a file in the run's own frame is left as it is, without a word
         warnings.simplefilter("error")
         load_run(trainer.run_dir, ply=ply)
-

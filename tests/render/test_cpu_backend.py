@@ -109,8 +109,16 @@ def test_float64_matches_reference_tightly():
 
 def _composite_inputs(g: GaussianSet, cam, colors=None):
     W, H = int(cam.width[0]), int(cam.height[0])
-    proj = project_gaussians(g.means, g.quats, g.scales, cam.world_to_cameras()[0].to(g.means),
-                             cam.intrinsics()[0].to(g.means), W, H, opacities=g.opacities)
+    proj = project_gaussians(
+        g.means,
+        g.quats,
+        g.scales,
+        cam.world_to_cameras()[0].to(g.means),
+        cam.intrinsics()[0].to(g.means),
+        W,
+        H,
+        opacities=g.opacities,
+    )
     bins = bin_gaussians(proj.means2d, proj.extents, proj.depths, W, H)
     if colors is None:
         colors = gaussian_colors(g, cam.centers[0].to(g.means), int(round(g.sh.shape[1] ** 0.5)) - 1)
@@ -126,11 +134,23 @@ def test_composite_function_gradcheck(channels):
     assert bins.num_intersections > 0
 
     def composite(means2d, conics, opacities, colors, depths):
-        return CompositeTiles.apply(means2d, conics, opacities, colors, depths, bins.gaussian_ids, bins.offsets,
-                                    bins.tiles_x, bins.tiles_y, W, H)
+        return CompositeTiles.apply(
+            means2d,
+            conics,
+            opacities,
+            colors,
+            depths,
+            bins.gaussian_ids,
+            bins.offsets,
+            bins.tiles_x,
+            bins.tiles_y,
+            W,
+            H,
+        )
 
-    inputs = tuple(t.detach().clone().requires_grad_(True)
-                   for t in (proj.means2d, proj.conics, g.opacities, colors, proj.depths))
+    inputs = tuple(
+        t.detach().clone().requires_grad_(True) for t in (proj.means2d, proj.conics, g.opacities, colors, proj.depths)
+    )
     assert torch.autograd.gradcheck(composite, inputs, eps=1e-6, atol=1e-6, rtol=1e-4)
 
 
@@ -164,9 +184,13 @@ def test_early_termination_with_opaque_stack(opacity_behind):
     means = torch.tensor([[0.0, 0.0, 2.0 + 0.1 * i] for i in range(n)], dtype=torch.float64)
     opac = torch.full((n,), opacity_behind, dtype=torch.float64)
     opac[:3] = 0.999  # the pixel stops on the third Gaussian; the fainter ones behind must not come back
-    g = GaussianSet(means, torch.tensor([[1.0, 0, 0, 0]] * n, dtype=torch.float64),
-                    torch.full((n, 3), 0.5, dtype=torch.float64), opac,
-                    torch.rand(n, 1, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(0)))
+    g = GaussianSet(
+        means,
+        torch.tensor([[1.0, 0, 0, 0]] * n, dtype=torch.float64),
+        torch.full((n, 3), 0.5, dtype=torch.float64),
+        opac,
+        torch.rand(n, 1, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(0)),
+    )
     cam = camera(16, 16)
     out = CpuRasterizer().render(g, cam)
     proj, _, colors, W, H = _composite_inputs(g, cam)
@@ -183,8 +207,19 @@ def test_matches_brute_force_with_general_channels():
     cam = camera(23, 19, f=20.0)
     colors = torch.rand(40, 4, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
     proj, bins, colors, W, H = _composite_inputs(g, cam, colors)
-    color, alpha, depth_sum = CompositeTiles.apply(proj.means2d, proj.conics, g.opacities, colors, proj.depths,
-                                                   bins.gaussian_ids, bins.offsets, bins.tiles_x, bins.tiles_y, W, H)
+    color, alpha, depth_sum = CompositeTiles.apply(
+        proj.means2d,
+        proj.conics,
+        g.opacities,
+        colors,
+        proj.depths,
+        bins.gaussian_ids,
+        bins.offsets,
+        bins.tiles_x,
+        bins.tiles_y,
+        W,
+        H,
+    )
     ref, ref_alpha = brute_composite(proj.means2d, proj.conics, g.opacities, colors, proj.depths, proj.radii, W, H)
     assert color.shape == (H, W, 4)
     torch.testing.assert_close(color, ref, rtol=0, atol=1e-12)
@@ -239,8 +274,10 @@ def test_projection_op_matches_torch_reference(sh_degree):
     cam = camera(50, 40, f=45.0)
     W, H = 50, 40
     viewmat, K, campos = cam.world_to_cameras()[0].double(), cam.intrinsics()[0].double(), cam.centers[0].double()
-    cot = [torch.randn(s, dtype=torch.float64, generator=torch.Generator().manual_seed(i))
-           for i, s in enumerate([(400, 2), (400, 3), (400,), (400, 3)])]
+    cot = [
+        torch.randn(s, dtype=torch.float64, generator=torch.Generator().manual_seed(i))
+        for i, s in enumerate([(400, 2), (400, 3), (400,), (400, 3)])
+    ]
 
     def run(fn):
         params = [t.clone().requires_grad_(True) for t in (g.means, g.quats, g.scales, g.sh)]
@@ -249,8 +286,9 @@ def test_projection_op_matches_torch_reference(sh_degree):
         return [o.detach() for o in outs], [p.grad for p in params]
 
     def ours(means, quats, scales, sh):
-        return cpu_backend.ProjectShade.apply(means, quats, scales, g.opacities, sh, viewmat, K, campos, W, H,
-                                              0.01, 1e10, 0.3, sh_degree)
+        return cpu_backend.ProjectShade.apply(
+            means, quats, scales, g.opacities, sh, viewmat, K, campos, W, H, 0.01, 1e10, 0.3, sh_degree
+        )
 
     def reference_fn(means, quats, scales, sh):
         p = project_gaussians(means, quats, scales, viewmat, K, W, H, opacities=g.opacities)
@@ -312,9 +350,13 @@ def test_kernels_built_without_avx512_match_the_default_build(tmp_path, variant)
     else:
         flags = [f for f in cflags if f != "-mprefer-vector-width=512"] + ["-mno-avx512f"]
     plain = cpp_extension.load(
-        name=f"metegs_test_{variant.replace('-', '_')}", sources=[str(f) for f in cpu_backend.SOURCES],
-        extra_include_paths=[str(cpu_backend.CSRC)], extra_ldflags=ldflags, extra_cflags=flags,
-        build_directory=str(tmp_path), verbose=False,
+        name=f"metegs_test_{variant.replace('-', '_')}",
+        sources=[str(f) for f in cpu_backend.SOURCES],
+        extra_include_paths=[str(cpu_backend.CSRC)],
+        extra_ldflags=ldflags,
+        extra_cflags=flags,
+        build_directory=str(tmp_path),
+        verbose=False,
     )
     default = cpu_backend.load_extension()
     g = degenerate(random_scene(300, seed=4, sh_degree=3), "tiny_scale")
@@ -330,8 +372,9 @@ def test_kernels_built_without_avx512_match_the_default_build(tmp_path, variant)
         tiles = ((W + 15) // 16, (H + 15) // 16)
         fwd = ext.forward(m2, con, g.opacities, col, dep, ids, offsets, *tiles, W, H, rows)
         bwd = ext.backward(m2, con, g.opacities, col, dep, ids, offsets, fwd[3], fwd[4], *g_img, *tiles, W, H, rows)
-        pbwd = ext.project_backward(g.means, g.quats, g.scales, g.opacities, g.sh, *args, bwd[0], bwd[1], bwd[4],
-                                    bwd[3])
+        pbwd = ext.project_backward(
+            g.means, g.quats, g.scales, g.opacities, g.sh, *args, bwd[0], bwd[1], bwd[4], bwd[3]
+        )
         return [m2, con, dep, col, radii, extents, ids, offsets, rows, *fwd], [*bwd, *pbwd]
 
     (exact_a, grads_a), (exact_b, grads_b) = run(plain), run(default)
@@ -364,8 +407,8 @@ def test_binning_matches_torch_and_culling_is_a_subset(seed, ties):
     cids, coffsets, _ = ext.bin_tiles(*args, True)
     assert cids.numel() < ids.numel()
     for t in range(len(offsets) - 1):
-        kept = cids[coffsets[t]:coffsets[t + 1]].tolist()
-        full = ids[offsets[t]:offsets[t + 1]].tolist()
+        kept = cids[coffsets[t] : coffsets[t + 1]].tolist()
+        full = ids[offsets[t] : offsets[t + 1]].tolist()
         assert kept == [i for i in full if i in set(kept)]  # a sub-list, still front to back
 
 
@@ -407,11 +450,11 @@ def test_culled_tiles_are_those_the_ellipse_reaches(thin):
     tx_n, ty_n = (W + 15) // 16, (H + 15) // 16
     kept = torch.zeros(n, ty_n * tx_n, dtype=torch.bool)
     for t in range(ty_n * tx_n):
-        kept[ids[offsets[t]:offsets[t + 1]], t] = True
+        kept[ids[offsets[t] : offsets[t + 1]], t] = True
     ty, tx = torch.meshgrid(torch.arange(ty_n), torch.arange(tx_n), indexing="ij")
     ty, tx = ty.flatten().double(), tx.flatten().double()
     m, con = means2d.double(), conics.double()
-    A, B, C = (con[:, k:k + 1] for k in range(3))
+    A, B, C = (con[:, k : k + 1] for k in range(3))
     thresh = 2 * torch.log((255 * opac.double()).clamp_min(1.0))[:, None]
     X0 = 16 * tx + 0.5 - m[:, :1]
     X1 = torch.minimum(16 * tx + 16, torch.tensor(float(W))) - 0.5 - m[:, :1]
@@ -449,7 +492,9 @@ def test_binning_beyond_65536_tile_columns_matches_torch():
     tiles = torch.repeat_interleave(torch.arange(len(coffsets) - 1), coffsets.diff())
     assert cids.numel() > 0 and bool((tiles % ((W + 15) // 16) * 16 >= 1_049_000).all())
     mx = means2d[cids, 0]
-    assert bool(((tiles % ((W + 15) // 16)) * 16 <= mx + 25).all() & ((tiles % ((W + 15) // 16) + 1) * 16 >= mx - 25).all())
+    assert bool(
+        ((tiles % ((W + 15) // 16)) * 16 <= mx + 25).all() & ((tiles % ((W + 15) // 16) + 1) * 16 >= mx - 25).all()
+    )
 
 
 def test_row_half_heights_of_bin_tiles_equal_the_composite_fallback_and_bad_rows_are_refused():
@@ -484,10 +529,31 @@ def test_build_failure_still_trains_through_torch(tmp_path):
     import sys
 
     env = dict(os.environ, CXX="/bin/false", CC="/bin/false", METEGS_EXTENSIONS_DIR=str(tmp_path / "ext"))
-    cmd = [sys.executable, "-W", "always::UserWarning", "-m", "metegs.cli.train", "3dgs", "--max-steps", "3",
-           "--output-dir", str(tmp_path), "--experiment-name", "nocc", "--dataset.synthetic.num-views", "6",
-           "--dataset.synthetic.width", "32", "--dataset.synthetic.height", "24", "--eval-every", "0",
-           "--no-progress", "--device", "cpu"]
+    cmd = [
+        sys.executable,
+        "-W",
+        "always::UserWarning",
+        "-m",
+        "metegs.cli.train",
+        "3dgs",
+        "--max-steps",
+        "3",
+        "--output-dir",
+        str(tmp_path),
+        "--experiment-name",
+        "nocc",
+        "--dataset.synthetic.num-views",
+        "6",
+        "--dataset.synthetic.width",
+        "32",
+        "--dataset.synthetic.height",
+        "24",
+        "--eval-every",
+        "0",
+        "--no-progress",
+        "--device",
+        "cpu",
+    ]
     res = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
     assert res.returncode == 0, res.stderr[-3000:]
     assert res.stderr.count("CpuBackendWarning") == 1, res.stderr[-3000:]
@@ -576,8 +642,9 @@ def test_openmp_flags_follow_torchs_own_runtime_not_what_else_is_loaded(tmp_path
     monkeypatch.undo()
     probe = "from metegs.render import cpu_backend; print(cpu_backend.openmp_flags())"
     alone = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=300)
-    after = subprocess.run([sys.executable, "-c", "import pycolmap\n" + probe], capture_output=True, text=True,
-                           timeout=300)
+    after = subprocess.run(
+        [sys.executable, "-c", "import pycolmap\n" + probe], capture_output=True, text=True, timeout=300
+    )
     assert alone.returncode == 0 and after.returncode == 0, alone.stderr[-2000:] + after.stderr[-2000:]
     assert alone.stdout.split("\n")[-2] == after.stdout.split("\n")[-2] == str(cpu_backend.openmp_flags())
 

@@ -69,8 +69,12 @@ def train_live(out: Path) -> dict:
     trainer = config.setup()
     threads_before = torch.get_num_threads()
     viewer = Viewer(trainer, ViewerConfig(port=0), live=True)
-    record: dict = {"run_dir": str(trainer.run_dir), "port": viewer.port, "backend": trainer.config.backend,
-                    "threads_before": threads_before}
+    record: dict = {
+        "run_dir": str(trainer.run_dir),
+        "port": viewer.port,
+        "backend": trainer.config.backend,
+        "threads_before": threads_before,
+    }
 
     def threads_seen(tr, stats):  # on the training thread: torch's count and the cpu kernels'
         if tr.step == 3 and tr.config.backend == "cpu":

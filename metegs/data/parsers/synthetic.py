@@ -176,8 +176,14 @@ def make_scene(rng: np.random.Generator) -> Scene:
         half = np.array([rng.uniform(0.3, 0.8), rng.uniform(0.3, 0.8), rng.uniform(0.25, 1.0 if k else 1.4)])
         xy = place(float(np.hypot(half[0], half[1])))
         boxes.append(
-            Box(np.array([xy[0], xy[1], half[2]]), half, float(rng.uniform(0, np.pi)), color(),
-                int(rng.integers(3)), float(rng.uniform(0.35, 0.6)))
+            Box(
+                np.array([xy[0], xy[1], half[2]]),
+                half,
+                float(rng.uniform(0, np.pi)),
+                color(),
+                int(rng.integers(3)),
+                float(rng.uniform(0.35, 0.6)),
+            )
         )
     spheres = []
     for _ in range(4):
@@ -446,8 +452,9 @@ def orbit_poses(n: int, rng: np.random.Generator) -> np.ndarray:
     return np.stack([look_at(e, t) for e, t in zip(eyes, targets)])
 
 
-def pixel_rays(c2w: np.ndarray, fx: float, cx: float, cy: float, width: int, height: int,
-               offsets: np.ndarray) -> np.ndarray:
+def pixel_rays(
+    c2w: np.ndarray, fx: float, cx: float, cy: float, width: int, height: int, offsets: np.ndarray
+) -> np.ndarray:
     """Directions [H, W, S, 3] of the rays through pixel (column, row) + offset for each offset [S, 2].
 
     Directions have unit z in camera axes, so the hit parameter t is the z-depth (square pixels, fy = fx).
@@ -475,8 +482,9 @@ def render_view(scene: Scene, c2w: np.ndarray, fx: float, cx: float, cy: float, 
     return image.astype(np.float32), depth.astype(np.float32), d[:, :, 0]
 
 
-def sample_points(scene: Scene, poses: np.ndarray, rays: list[np.ndarray], views: list[int], count: int,
-                  rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+def sample_points(
+    scene: Scene, poses: np.ndarray, rays: list[np.ndarray], views: list[int], count: int, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
     """``count`` surface points seen through random pixel centres of ``views``, coloured by their shading."""
     if not views or count <= 0:
         return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32)

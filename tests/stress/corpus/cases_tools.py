@@ -9,8 +9,18 @@ from pathlib import Path
 
 from corpus.harness import Case, Result, trained_run
 
-SYNTH_TINY = ["--dataset.synthetic.width", "32", "--dataset.synthetic.height", "24",
-              "--dataset.synthetic.num-views", "3", "--dataset.synthetic.num-points", "100", "--preview-views", "0"]  # fmt: skip
+SYNTH_TINY = [
+    "--dataset.synthetic.width",
+    "32",
+    "--dataset.synthetic.height",
+    "24",
+    "--dataset.synthetic.num-views",
+    "3",
+    "--dataset.synthetic.num-points",
+    "100",
+    "--preview-views",
+    "0",
+]
 
 
 def _file(folder, name, text):
@@ -79,6 +89,8 @@ def _blocker(folder):
 
 SUITE_SCENE = "name: t\nscenes:\n  - name: s\n    data: synthetic\n"
 
+# The cases are a table to read down: one case on one or two lines.
+# fmt: off
 CASES = [
     # metegs-bench
     Case(
@@ -87,7 +99,7 @@ CASES = [
         lambda f: ["suite", "missing.yaml"],
         "clear",
         match=r"missing\.yaml: suite file not found",
-    ),  # fmt: skip
+    ),
     Case("bench-suite-broken-yaml", "metegs-bench", lambda f: _suite(f, "scenes: [\n"), "clear", match=r"suite\.yaml"),
     Case(
         "bench-suite-unknown-key",
@@ -95,70 +107,70 @@ CASES = [
         lambda f: _suite(f, "nonsense: 1\n"),
         "clear",
         match=r"suite\.yaml: unknown key\(s\) nonsense",
-    ),  # fmt: skip
+    ),
     Case(
         "bench-suite-empty",
         "metegs-bench",
         lambda f: _suite(f, "name: t\n"),
         "clear",
         match=r"suite\.yaml: a suite needs at least one scene",
-    ),  # fmt: skip
+    ),
     Case(
         "bench-suite-method-not-a-mapping",
         "metegs-bench",
         lambda f: _suite(f, SUITE_SCENE + "methods: [nope]\n"),
         "clear",
         match=r"suite\.yaml: methods\[0\]",
-    ),  # fmt: skip
+    ),
     Case(
         "bench-suite-output-under-a-file",
         "metegs-bench",
         lambda f: ["suite", "--quick", "--output", _blocker(f) / "x"],
         "clear",
         match=r"blocker",
-    ),  # fmt: skip
+    ),
     Case(
         "bench-raster-negative-size",
         "metegs-bench",
         lambda f: ["raster", "--sizes", "-5"],
         "clear",
         match=r"--sizes -5",
-    ),  # fmt: skip
+    ),
     Case(
         "bench-raster-zero-image",
         "metegs-bench",
         lambda f: ["raster", "--images", "0x0"],
         "clear",
         match=r"--images.*0x0",
-    ),  # fmt: skip
+    ),
     Case(
         "bench-raster-bad-image",
         "metegs-bench",
         lambda f: ["raster", "--images", "wide"],
         "clear",
         match=r"--images.*wide",
-    ),  # fmt: skip
+    ),
     Case(
         "bench-raster-zero-repeats",
         "metegs-bench",
         lambda f: ["raster", "--repeats", "0"],
         "clear",
         match=r"--repeats 0",
-    ),  # fmt: skip
+    ),
     Case(
         "bench-raster-zero-threads",
         "metegs-bench",
         lambda f: ["raster", "--threads", "0"],
         "clear",
         match=r"--threads 0",
-    ),  # fmt: skip
+    ),
     Case(
         "bench-raster-unknown-backend",
         "metegs-bench",
         lambda f: ["raster", "--backends", "vulkan", "--sizes", "10", "--images", "8x8"],
         "clear",
         match=r"vulkan",
-    ),  # fmt: skip
+    ),
     Case("bench-step-zero-size", "metegs-bench", lambda f: ["step", "--sizes", "0"], "clear", match=r"--sizes 0"),
     Case("bench-step-tiny-width", "metegs-bench", lambda f: ["step", "--width", "2"], "clear", match=r"--width 2"),
     Case(
@@ -167,81 +179,81 @@ CASES = [
         lambda f: ["step", "--torch-threads", "-1"],
         "clear",
         match=r"--torch-threads -1",
-    ),  # fmt: skip
+    ),
     # metegs-synth
     Case("synth-tiny", "metegs-synth", lambda f: _synth(f, "--precip-mm-h", "10"), "correct", check=_synthesised),
     Case("synth-after-a-killed-synth", "metegs-synth", _synth_after_killed_one, "correct", check=_synthesised),
     Case("synth-prsa-record-in-utf16", "metegs-synth", _prsa_utf16, "correct", check=_synthesised),
     Case("synth-precipitation-above-world-record", "metegs-synth", lambda f: _synth(f, "--precip-mm-h", "1e9"),
-         "clear", match=r"--precip-mm-h 1000000000.0: expected a number >= 0 and <= 2400"),  # fmt: skip
+         "clear", match=r"--precip-mm-h 1000000000.0: expected a number >= 0 and <= 2400"),
     Case("synth-visibility-below-a-metre", "metegs-synth", lambda f: _synth(f, "--visibility-m", "0.5"), "clear",
-         match=r"--visibility-m 0.5"),  # fmt: skip
+         match=r"--visibility-m 0.5"),
     Case("synth-infinite-wind-direction", "metegs-synth",
          lambda f: _synth(f, "--precip-mm-h", "5", "--wind-speed-m-per-s", "3", "--wind-dir-deg", "inf"), "clear",
-         match=r"--wind-dir-deg inf"),  # fmt: skip
+         match=r"--wind-dir-deg inf"),
     Case("synth-hurricane-beyond-record", "metegs-synth",
          lambda f: _synth(f, "--precip-mm-h", "5", "--wind-speed-m-per-s", "500"), "clear",
-         match=r"--wind-speed-m-per-s 500"),  # fmt: skip
+         match=r"--wind-speed-m-per-s 500"),
     Case("synth-output-exists", "metegs-synth", _existing_output, "clear", match=r"rainy exists", check=_kept),
     Case(
         "synth-unknown-kind", "metegs-synth", lambda f: _synth(f, "--kinds", "snow"), "clear", match=r"kinds='snow'"
-    ),  # fmt: skip
+    ),
     Case(
         "synth-zero-exposure",
         "metegs-synth",
         lambda f: _synth(f, "--exposure-s", "0"),
         "clear",
         match=r"--exposure-s 0",
-    ),  # fmt: skip
+    ),
     Case(
         "synth-negative-capture-width",
         "metegs-synth",
         lambda f: _synth(f, "--capture-width-px", "-1"),
         "clear",
         match=r"--capture-width-px -1",
-    ),  # fmt: skip
+    ),
     Case(
         "synth-nan-precipitation",
         "metegs-synth",
         lambda f: _synth(f, "--precip-mm-h", "nan"),
         "clear",
         match=r"--precip-mm-h nan",
-    ),  # fmt: skip
+    ),
     Case(
         "synth-negative-metres-per-unit",
         "metegs-synth",
         lambda f: _synth(f, "--metres-per-unit", "-3"),
         "clear",
         match=r"--metres-per-unit -3",
-    ),  # fmt: skip
+    ),
     Case(
         "synth-tiny-scene-width",
         "metegs-synth",
         lambda f: _synth(f, "--dataset.synthetic.width", "0"),
         "clear",
         match=r"--dataset\.synthetic\.width 0",
-    ),  # fmt: skip
+    ),
     Case(
         "synth-missing-data",
         "metegs-synth",
         lambda f: _synth(f, "--data", "no-such-scene"),
         "clear",
         match=r"no-such-scene",
-    ),  # fmt: skip
+    ),
     Case(
         "synth-depth-from-not-a-run",
         "metegs-synth",
         lambda f: _synth(f, "--depth-from", f),
         "clear",
         match=r"config\.yml",
-    ),  # fmt: skip
+    ),
     Case(
         "synth-output-under-a-file",
         "metegs-synth",
         lambda f: ["--output", _blocker(f) / "rainy", *SYNTH_TINY],
         "clear",
         match=r"blocker",
-    ),  # fmt: skip
+    ),
     # metegs-process-images
     Case(
         "process-images-missing-folder",
@@ -249,33 +261,34 @@ CASES = [
         lambda f: ["no-photos", Path(f) / "out"],
         "clear",
         match=r"no-photos: photo folder does not exist",
-    ),  # fmt: skip
+    ),
     Case(
         "process-images-empty-folder",
         "metegs-process-images",
         lambda f: [_photos(f), Path(f) / "out"],
         "clear",
         match=r"photos: no photos found",
-    ),  # fmt: skip
+    ),
     Case(
         "process-images-output-exists",
         "metegs-process-images",
         lambda f: [_photos(f), os.makedirs(Path(f) / "out") or Path(f) / "out"],
         "clear",
         match=r"out exists",
-    ),  # fmt: skip
+    ),
     Case(
         "process-images-folder-is-a-file",
         "metegs-process-images",
         lambda f: [_blocker(f), Path(f) / "out"],
         "clear",
         match=r"blocker",
-    ),  # fmt: skip
+    ),
     # metegs-view options (refused before a server starts)
     Case("view-port-out-of-range", "metegs-view", lambda f: [f, "--port", "99999"], "clear", match=r"--port 99999"),
     Case("view-max-side-zero", "metegs-view", lambda f: [f, "--max-side", "0"], "clear", match=r"--max-side 0"),
     Case("view-not-a-run", "metegs-view", lambda f: [f], "clear", match=r"config\.yml.*not a metegs run folder"),
     Case(
         "view-missing-ply", "metegs-view", lambda f: [trained_run(f), "--ply", "none.ply"], "clear", match=r"none\.ply"
-    ),  # fmt: skip
+    ),
 ]
+# fmt: on
