@@ -40,6 +40,9 @@ class ADCConfig(InstantiateConfig):
     """After the first opacity reset, prune Gaussians larger than this fraction of the scene extent (0.5 as
     splatfacto and OpenSplat; INRIA's and gsplat's 0.1 leaves holes past the edges of the training views, where
     views that look past the training photos need the large Gaussians)."""
+    horizon: Annotated[int, NON_NEGATIVE] = 0
+    """Steps that the schedule's fractions refer to (0: the whole run); a longer run densifies as a run of this
+    many steps does, then only optimises what it grew."""
     refine_start: Annotated[float, FRACTION] = 500 / 30000
     """Start of refinement, as a fraction of the run."""
     refine_stop: Annotated[float, FRACTION] = 15000 / 30000
@@ -85,10 +88,11 @@ class AdaptiveDensityControl:
         self.config = config
         self.extent = extent
         c = config
-        self.start_step = int(round(c.refine_start * max_steps))
-        self.stop_step = int(round(c.refine_stop * max_steps))
+        span = min(max_steps, c.horizon) if c.horizon else max_steps
+        self.start_step = int(round(c.refine_start * span))
+        self.stop_step = int(round(c.refine_stop * span))
         self.every = max(num_train_views, 1, min(c.refine_every, (self.stop_step - self.start_step) // 10))
-        reset = int(round(c.reset_every * max_steps)) if c.reset_every > 0 else 0
+        reset = int(round(c.reset_every * span)) if c.reset_every > 0 else 0
         self.reset_every = reset if reset >= 3 * self.every else 0
         self.state: DensifyState | None = None
         self.prune_rule = prune_rule

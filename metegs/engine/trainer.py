@@ -180,6 +180,7 @@ class Trainer:
         """The share of Gaussians `step_gaussians` leaves out by the last step."""
         self.exposure, self.exposure_optimizer = self._make_exposure()  # after the method: it may decide
         self.densifier = self.make_densifier()
+        self._decide_densify_horizon()
         if ckpt is not None:
             self._restore_state(ckpt)
 
@@ -493,6 +494,18 @@ class Trainer:
         return self.config.densify.setup(
             max_steps=self.config.max_steps, extent=self.extent, num_train_views=len(self.dataset.train_indices)
         )
+
+    def _decide_densify_horizon(self) -> None:
+        """Say so where `densify.horizon` keeps a longer run on a shorter run's densification schedule."""
+        horizon = getattr(self.config.densify, "horizon", 0)
+        schedule = getattr(self.densifier, "schedule", None)
+        if 0 < horizon < self.config.max_steps and schedule is not None:
+            at = schedule()
+            self.decide(
+                "densification horizon",
+                f"{horizon} steps: refines from step {at['start']} to {at['stop']} as a {horizon}-step run does, "
+                "then only optimises what it grew",
+            )
 
     def schedule_step(self) -> None:
         """SH degree and position learning rate for the current step."""

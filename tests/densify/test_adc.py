@@ -52,6 +52,23 @@ def test_schedule_is_a_fraction_of_the_run():
     assert short["reset_every"] == 0  # 30-step reset periods would leave no time to recover
 
 
+def test_horizon_keeps_a_longer_run_on_the_horizons_schedule():
+    three_k = AdaptiveDensityControl(ADCConfig(), max_steps=3000, extent=1.0).schedule()
+    long = AdaptiveDensityControl(ADCConfig(horizon=3000), max_steps=30000, extent=1.0)
+    assert long.schedule() == three_k
+    # No refinement and no reset after the horizon's window, however strong the gradients.
+    model, opts = model_with([0.001, 0.5], [0.5, 0.5])
+    for step in (3000, 6000, 15000):
+        long.update_stats(model, fake_render(model, [[1e-3, 0]] * 2))
+        assert long.step(model, opts, step) == {} and len(model) == 2
+    # Inside the window it refines as the 3000-step run does.
+    long.update_stats(model, fake_render(model, [[1e-3, 0]] * 2))
+    assert long.step(model, opts, 1000)["clone"] == 1 and len(model) > 2
+    # A run shorter than the horizon keeps its own schedule.
+    capped = AdaptiveDensityControl(ADCConfig(horizon=3000), max_steps=2000, extent=1.0).schedule()
+    assert capped == AdaptiveDensityControl(ADCConfig(), max_steps=2000, extent=1.0).schedule()
+
+
 def test_refinement_waits_for_a_pass_over_the_views():
     adc = AdaptiveDensityControl(ADCConfig(), max_steps=3000, extent=1.0, num_train_views=42)
     assert adc.schedule() == {"start": 50, "stop": 1500, "every": 100, "reset_every": 300}

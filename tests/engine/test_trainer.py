@@ -262,3 +262,11 @@ def test_a_method_extends_the_step_through_its_hooks(tmp_path):
     assert float(trainer.tint.detach().mean()) > 0.05 and trainer.tint.grad is None  # stepped, then zeroed
     assert not torch.equal(trainer.model.params["means"].detach(), means_before)
     assert trainer.densifier.state is not None and float(trainer.densifier.state.count.sum()) > 0
+
+
+def test_densification_horizon_is_a_decision_and_the_schedule(tmp_path):
+    long = replace(tiny_config(tmp_path / "long"), max_steps=7000, densify=ADCConfig(horizon=3000)).setup()
+    assert long.densifier.schedule() == {"start": 50, "stop": 1500, "every": 100, "reset_every": 300}
+    assert long.decisions["densification horizon"].startswith("3000 steps: refines from step 50 to 1500")
+    within = replace(tiny_config(tmp_path / "within"), max_steps=2000, densify=ADCConfig(horizon=3000)).setup()
+    assert "densification horizon" not in within.decisions  # a run inside the horizon keeps its own schedule
