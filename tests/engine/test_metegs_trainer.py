@@ -754,7 +754,8 @@ def test_sharp_weather_prunes_opacity_as_3dgs_does(tmp_path):
 def test_sharp_weather_trains_as_3dgs_does(tmp_path):
     """Blind, in light rain with no visible medium: no learnable streaks, GTN, extra points, depth-aware pruning or
     camera clearance (on the Lund street the first four cost 0.2-0.55 dB against 3dgs there and left no cleaner
-    render), so the run is 3dgs's, step for step; heavy rain, or clean references, keep them."""
+    render), so the run is 3dgs's, step for step; heavy rain, or clean references, keep all but the streaks, which
+    only clean references keep."""
     from metegs.engine.compare import baseline_config
     from metegs.engine.trainer import Trainer
 
@@ -780,6 +781,14 @@ def test_sharp_weather_trains_as_3dgs_does(tmp_path):
     for trainer in (heavy, refs):
         assert trainer.decisions["weather rain-streaks"].startswith("on") and trainer.extra_points is not None
         assert trainer.decisions["depth pruning"].startswith("on")
+    # blind in heavy rain: the extra points and depth pruning stay, the learnable streaks never train blind
+    from metegs.engine.metegs_trainer import BLIND_STREAKS
+
+    blind = tiny_metegs(tmp_path / "blind", max_steps=3000, densify=MeteGSConfig().densify, clean_supervision=False)
+    blind = blind.setup()
+    assert blind.decisions["weather rain-streaks"] == f"off: {BLIND_STREAKS}"
+    assert not any(isinstance(m, LearnableTransients) for m in blind.weather_models)
+    assert blind.extra_points is not None and blind.decisions["depth pruning"].startswith("on")
 
 
 def test_opacity_resets_stay_on_with_the_gtn_where_it_rains_under_thin_fog(tmp_path):
