@@ -96,8 +96,7 @@ PERCEPTUAL_CACHE_MB = 512
 
 BLIND_STREAKS = (
     "blind, per-view learnable streaks fitted the photos' rain no better than the robust mask and the low-quantile "
-    "fit alone (twelve rain cells of three real captures: 0.20 dB more on average without them), and under rain "
-    "made another way they absorbed scene detail (1.0-1.3 dB)"
+    "fit alone (twelve rain cells of three real captures: 0.20 dB more on average without them)"
 )
 """Why blind training leaves rain's learnable streaks out (docs/benchmark.md, "A third generator")."""
 
@@ -128,7 +127,8 @@ class MeteGSTrainer(Trainer):
         self.medium_optical_depth = 0.0
         """Largest optical depth β·d of a weather model's medium at the scene's typical depth d (0: none)."""
         self.active_kinds: set[str] = set()
-        """Kinds of the weather models that are on (rain, fog, ...; `_build_weather`)."""
+        """Kinds of the weather that the photos show and the run takes out (rain, fog, ...; `_build_weather`): those
+        of the weather models that are on, and blind rain above light, whose learnable streaks stay off."""
         self.weather_models: list[WeatherModel] = self._build_weather() if c.weather_branch else []
         if not c.weather_branch:
             self.decide("weather", "off (ablation): the scene alone fits the degraded photos")
@@ -383,6 +383,8 @@ class MeteGSTrainer(Trainer):
             if getattr(model, "transient", False):
                 if not self.use_clean and kind_of(name) == "rain":
                     self.decide(f"weather {name}", "off: " + (f"{sharp}; " if sharp else "") + BLIND_STREAKS)
+                    if sharp is None:  # the photos still show the rain: the 2D restorers take it out
+                        self.active_kinds.add(kind_of(name))
                     continue
                 model = LearnableTransients(model, list(ds.train_indices), c.learnable_weather)
                 count = sum(len(v.means) for v in model.views.values()) / max(len(model.views), 1)
