@@ -12,6 +12,8 @@ T0=$(date +%s); DEADLINE_S=${DEADLINE_S:-545}
 DEVICE=${DEVICE:-cuda}; STEPS=${STEPS:-3000}
 SCENES=${SCENES:-ethiopianhead fox lund}
 CONDS=${CONDS:-rain+fog-ind fog-200-ind rain-heavy-ind rain-light-ind}  # the independent family first
+# PAIRS="lund rain-heavy,fox fog-200-ind" picks (scene, condition) pairs instead of SCENES x CONDS (SCENES still
+# names the clean runs)
 METHODS=${METHODS:-3dgs-clean 3dgs metegs-blind metegs-blind-stop metegs-blind-nodcp metegs-full}
 # the suite processes share the CPU cores: two OpenMP threads each, as spinning threads would stall the others
 export OMP_NUM_THREADS=${OMP_NUM_THREADS:-2}
@@ -34,7 +36,8 @@ export -f pair bench left; export CFG METHODS OUT T0 DEADLINE_S PY
 ( for s in $SCENES; do
     bench suite $CFG --only-scenes $s --only-methods 3dgs-clean > "$OUT/logs/clean-$s.log" 2>&1 &
   done; wait; echo "clean runs ended at $(( $(date +%s) - T0 )) s"
-  for c in $CONDS; do for s in $SCENES; do echo "$s $c"; done; done | xargs -P "${JOBS:-4}" -L 1 bash -c 'pair "$0" "$1"'
+  if [ -n "${PAIRS:-}" ]; then echo "$PAIRS" | tr ',' '\n'; else for c in $CONDS; do for s in $SCENES; do echo "$s $c"; done; done; fi |
+    xargs -P "${JOBS:-4}" -L 1 bash -c 'pair "$0" "$1"'
 ) &
 WORK=$!
 while kill -0 $WORK 2>/dev/null && [ "$(left)" -gt 25 ]; do sleep 5; done
