@@ -2,8 +2,10 @@
 # wheels (.whl/) once per machine, as reinstalling renews gsplat's sources, which rebuilds it (75 s), and points
 # Python at them; logs the machine to $OUT/logs/env.log and builds gsplat's kernels ($OUT/logs/build.log).
 # Expects DEVICE, OUT and PY; exits when the wheels cannot be installed or gsplat does not build (BUILD_S, 400 s: from
-# scratch it took 84-104 s on a warm H200 and over 200 s on one just started), since every run would otherwise fall
-# back to the torch rasteriser, about 10x slower, and spend the lease without a result.
+# scratch it took 84-104 s on a warm H200 and 200-314 s on one just started), since every run would otherwise fall
+# back to the torch rasteriser, about 10x slower, and spend the lease without a result. The build stays on the machine
+# while it is warm (a later call loads it in about 6 s), so on a fresh machine a first call of BUILD_S builds it and
+# the grid goes in a second call at once (a machine left idle for 30 s goes back).
 mkdir -p "$OUT/logs"
 if [ "$DEVICE" = cuda ]; then
   [ -d /tmp/site/gsplat ] || python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || { echo "wheels failed"; exit 1; }

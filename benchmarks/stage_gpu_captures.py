@@ -6,7 +6,8 @@ and Lund at half their size (the training size is the same: both train at their 
 each world turned so that metegs's own up estimate is +Z, sparse points triangulated here where the capture has none
 (so the GPU runs start from the same kind of points as the CPU runs), the two met records, and ``real-gpu.yaml``:
 real.yaml's grid on CUDA without the rows the GPU image cannot run (the 2D restoration needs OpenCV's contrib module),
-plus two ablations of blind MeteGS (without the dark-channel prior; densification stopped at 20 % of the run).
+plus two ablations of blind MeteGS (without the dark-channel prior; densification stopped at 20 % of the run) and
+3DGS's and blind MeteGS's rows again with seeds 1 and 2 (``-seed1``, ``-seed2``).
 Then, on the machine, ``bash benchmarks/gpu_real.sh`` runs it.
 
     python benchmarks/stage_gpu_captures.py        # reads $METEGS_CAPTURES and ../shared
@@ -124,9 +125,21 @@ def grid_config(real: dict) -> dict:
         "label": "MeteGS (blind), densification stopped at 20 % of the steps",
         "overrides": {**blind["overrides"], "densify": {"refine_stop": 0.2}},
     }
+    # the same rows trained with other seeds on the same degraded photos: the spread a target's margin must clear
+    reseeded = [
+        {
+            **row,
+            "name": f"{row['name']}-seed{seed}",
+            "seed": seed,
+            "group": "ablation",
+            "label": f"{row.get('label', row['name'])}, seed {seed}",
+        }
+        for seed in (1, 2)
+        for row in (next(m for m in methods if m["name"] == "3dgs"), blind)
+    ]
     # a suite process runs its rows in this order: cheap, then key
     first = ("3dgs-clean", "3dgs", "metegs-blind", "metegs-blind-stop")
-    methods = [*methods, early_stop]
+    methods = [*methods, early_stop, *reseeded]
     methods.sort(key=lambda m: first.index(m["name"]) if m["name"] in first else len(first))
     config["methods"] = [*methods, ablation]
     config.pop("checks", None)

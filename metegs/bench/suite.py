@@ -187,7 +187,7 @@ class SuiteRunner:
     # --- configs -----------------------------------------------------------------------------------
     def method_config(self, scene: SceneSpec, method: MethodSpec, **fields):
         """The run config: the method's defaults <- suite ``train`` <- scene ``train`` <- method ``overrides``
-        <- the suite's seed/backend/device/threads/eval_every <- ``fields``."""
+        <- the suite's (or the row's) seed, the suite's backend/device/threads/eval_every <- ``fields``."""
         from metegs.registry import registry
 
         s = self.suite
@@ -204,7 +204,7 @@ class SuiteRunner:
                 raise ConfigError(f"{s.where}: {where}: {exc}") from exc
         config = replace(
             config,
-            seed=s.seed,
+            seed=s.seed if method.seed is None else method.seed,
             backend=s.backend,
             device=s.device,
             threads=self.job_threads or s.threads,
@@ -441,9 +441,10 @@ class SuiteRunner:
         """The suite's (selected) condition specs that run on ``scene``."""
         return [c for c in self.condition_specs if scene.conditions is None or c.name in scene.conditions]
 
-    def run(self, executor=None) -> dict:
+    def run(self, executor=None, prepare: bool = False) -> dict:
         """Run the suite's jobs (`plan_jobs`) on ``executor`` (default: `LocalExecutor`, one after the other in this
-        process) and gather the results; every executor resumes from the same suite folder."""
+        process) and gather the results; every executor resumes from the same suite folder. ``prepare``: only what
+        the weather runs need (clean-photo runs, depth, degraded and restored photos), no results written."""
         from metegs.bench.executors import LocalExecutor
         from metegs.bench.report import write_report
 
@@ -455,7 +456,13 @@ class SuiteRunner:
         self.resolved = conditions
         self.write_conditions(conditions)
         jobs = self.plan_jobs()
+        if prepare:
+            jobs = [j for j in jobs if j.action not in ("run", "peer")]
         outputs = (executor or LocalExecutor()).run(self, jobs)
+        if prepare:
+            self.write_conditions(conditions)
+            failed = [j.key for j in jobs if isinstance(outputs[j.key].value, dict) and "error" in outputs[j.key].value]
+            return {"prepared": [j.key for j in jobs], "failed": failed, "seconds": time.perf_counter() - started}
         self.records, self.support, self.thetas = [], [], {}
         for job in jobs:  # in plan order, whichever order the jobs ended in
             out = outputs[job.key]
@@ -558,6 +565,15 @@ class SuiteRunner:
         for key in job.deps:
             if inputs.get(key):
                 return inputs[key]
+        for m in self.suite.methods:  # a clean-photo row that ``--only-methods`` left out but an earlier call trained
+            run_dir = self.output / scene.name / "clean" / m.name
+            if (
+                m.photos == "clean"
+                and m.peer is None
+                and m.runs_on(scene.name, None)
+                and (run_dir / "metrics.json").is_file()
+            ):
+                return str(run_dir)
         helper = MethodSpec(name="_depth-3dgs", method="3dgs", photos="clean")
         run_dir = self.output / scene.name / "clean" / helper.name
         rec = self.execute(

@@ -92,6 +92,9 @@ class MethodSpec:
     """Only on these scenes (None: all)."""
     conditions: list[str] | None = None
     """Only on these conditions (None: all)."""
+    seed: int | None = None
+    """Training seed of this row's runs (None: the suite's); the degraded photos stay the suite seed's draw, so rows
+    that differ only in seed measure training's own spread."""
     label: str | None = None
     """Row label in tables (default: ``name``)."""
     ablation_label: str | None = None

@@ -21,7 +21,7 @@ from rich.table import Table
 
 from metegs.bench.steal import StealMeter
 from metegs.cli import run_cli
-from metegs.errors import ConfigError
+from metegs.errors import ConfigError, MetegsError
 from metegs.files import atomic_write_text
 from metegs.render.select import usable_backends
 from metegs.validate import NON_NEGATIVE, Range, check_config
@@ -142,6 +142,9 @@ class SuiteArgs:
     """With --executor ray: the cluster (auto, or ray://HOST:10001); none: start Ray on this machine."""
     dry_run: bool = False
     """Print the plan (runs and their folders) and exit."""
+    prepare: bool = False
+    """Make only what the weather runs need (the clean-photo runs that give the depth, the degraded and restored
+    photos) and train none of them: e.g. here, before the runs go to a GPU machine or a cluster."""
     report_only: bool = False
     """Rebuild results.md and the plots from an existing results.json."""
     fail_on_check: bool = True
@@ -195,6 +198,12 @@ def suite(args: SuiteArgs) -> dict:
         f"[bold]metegs-bench[/] suite {config.name} ({path}): {len(runner.scenes)} scene(s) x "
         f"{len(runner.condition_specs)} condition(s) x {len(runner.methods)} method(s) -> {runner.output}"
     )
+    if args.prepare:
+        prepared = runner.run(make_executor(args.executor, args.address), prepare=True)
+        console.print(f"prepared {len(prepared['prepared'])} job(s) in {prepared['seconds']:.0f} s: {runner.output}")
+        if prepared["failed"]:
+            raise MetegsError(f"could not prepare {', '.join(prepared['failed'])} (see the log above)")
+        return prepared
     results = runner.run(make_executor(args.executor, args.address))
     console.print((runner.output / "results.md").read_text())
     console.print(

@@ -462,3 +462,41 @@ def test_a_peer_must_be_scored_like_a_trained_method():
         suite_from_dict(_minimal(methods=[{"name": "3dgs"}, {"name": "p", "peer": {"ply": "x.ply", "like": "nope"}}]))
     with pytest.raises(ConfigError, match=r"peer must be \{ply: FILE, like: METHOD\}"):
         suite_from_dict(_minimal(methods=[{"name": "p", "peer": {"ply": "x.ply"}}]))
+
+
+def test_a_prepared_folder_gives_its_depth_to_a_filtered_call_and_a_row_its_own_seed(tmp_path):
+    """``prepare`` trains the clean row and degrades the photos, no weather run; a later ``--only-methods`` call that
+    leaves the clean row out uses them (no helper run), and a row's ``seed`` trains on the suite seed's photos."""
+    from metegs.bench.suite import SuiteRunner
+
+    scene_dir = _tiny_scene_on_disk(tmp_path / "scene")
+    train = {"max_steps": 4, "checkpoint_every": 4, "save_renders": False, "dataset": {"test_every": 4}}
+    suite = suite_from_dict(
+        {
+            "name": "seeds",
+            "fps_repeats": 1,
+            "train": train,
+            "scenes": [{"name": "files", "data": str(scene_dir), "synth": {"assumed_depth_m": 30.0}}],
+            "conditions": [{"name": "fog", "kind": "fog", "fog": {"visibility_m": 300, "explicit": True}}],
+            "methods": [
+                {"name": "3dgs-clean", "photos": "clean", "oracle": True},
+                {"name": "3dgs"},
+                {"name": "3dgs-seed1", "seed": 1},
+            ],
+        }
+    )
+    out = tmp_path / "out"
+    prepared = SuiteRunner(suite, output=out, only_methods=["3dgs-clean", "3dgs"]).run(prepare=True)
+    assert prepared["failed"] == [] and "files/fog/data" in prepared["prepared"]
+    assert (out / "files" / "clean" / "3dgs-clean" / "metrics.json").is_file()
+    assert (out / "files" / "fog" / "data" / "weather.json").is_file()
+    assert not (out / "files" / "fog" / "3dgs").exists() and not (out / "results.json").exists()
+    results = SuiteRunner(suite, output=out, only_methods=["3dgs", "3dgs-seed1"]).run()
+    assert {r["method"]: r["status"] for r in results["runs"]} == {"3dgs": "done", "3dgs-seed1": "done"}
+    assert not (out / "files" / "clean" / "_depth-3dgs").exists()
+    assert json.loads((out / "files" / "fog" / "data" / "weather.json").read_text())["seed"] == 0
+    seeds = {
+        m: yaml.safe_load((out / "files" / "fog" / m / "config.yml").read_text())["seed"]
+        for m in ("3dgs", "3dgs-seed1")
+    }
+    assert seeds == {"3dgs": 0, "3dgs-seed1": 1}
