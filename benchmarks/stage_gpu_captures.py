@@ -7,7 +7,7 @@ each world turned so that metegs's own up estimate is +Z, sparse points triangul
 (so the GPU runs start from the same kind of points as the CPU runs), the two met records, and ``real-gpu.yaml``:
 real.yaml's grid on CUDA without the rows the GPU image cannot run (the 2D restoration needs OpenCV's contrib module),
 plus two ablations of blind MeteGS (without the dark-channel prior; densification stopped at 20 % of the run) and
-3DGS's and blind MeteGS's rows again with seeds 1 and 2 (``-seed1``, ``-seed2``).
+3DGS's and blind MeteGS's rows also with seeds 1 and 2 (``seeds``: rows ``-seed1``, ``-seed2``).
 Then, on the machine, ``bash benchmarks/gpu_real.sh`` runs it.
 
     python benchmarks/stage_gpu_captures.py        # reads $METEGS_CAPTURES and ../shared
@@ -125,21 +125,12 @@ def grid_config(real: dict) -> dict:
         "label": "MeteGS (blind), densification stopped at 20 % of the steps",
         "overrides": {**blind["overrides"], "densify": {"refine_stop": 0.2}},
     }
-    # the same rows trained with other seeds on the same degraded photos: the spread a target's margin must clear
-    reseeded = [
-        {
-            **row,
-            "name": f"{row['name']}-seed{seed}",
-            "seed": seed,
-            "group": "ablation",
-            "label": f"{row.get('label', row['name'])}, seed {seed}",
-        }
-        for seed in (1, 2)
-        for row in (next(m for m in methods if m["name"] == "3dgs"), blind)
-    ]
+    for m in methods:  # the same rows with other seeds on the same photos: the spread a target's margin must clear
+        if m["name"] in ("3dgs", "metegs-blind"):
+            m["seeds"] = [1, 2]
     # a suite process runs its rows in this order: cheap, then key
     first = ("3dgs-clean", "3dgs", "metegs-blind", "metegs-blind-stop")
-    methods = [*methods, early_stop, *reseeded]
+    methods = [*methods, early_stop]
     methods.sort(key=lambda m: first.index(m["name"]) if m["name"] in first else len(first))
     config["methods"] = [*methods, ablation]
     config.pop("checks", None)

@@ -3,8 +3,8 @@
 ``results.md`` holds, per scene, the comparison table (rows: methods; columns: conditions x PSNR↑ /
 SSIM↑ / LPIPS↓; the best value of a column in **bold**, the second <u>underlined</u>; rows marked
 *oracle*, which see clean photos or clean references, are not ranked), one detail table per condition (PSNR / SSIM / LPIPS,
-training time, Gaussian count, render frames/s), the ablation table, the conditions (record, time, θ) and
-the checks. ``plots/<scene>__<condition>.png`` draws every method's test PSNR against its wall time
+training time, Gaussian count, render frames/s), the ablation table, the rows repeated with other seeds (mean ±
+standard deviation), the conditions (record, time, θ) and the checks. ``plots/<scene>__<condition>.png`` draws every method's test PSNR against its wall time
 (training, plus the restoration time for restored photos; the clean-photo rows dashed).
 """
 
@@ -170,7 +170,11 @@ def detail_table(results: dict, scene: str, condition: str | None) -> str | None
 
 def ablation_table(results: dict, scene: str) -> str | None:
     """Ablation rows (and methods with an ``ablation_label``): PSNR / SSIM per condition they ran on."""
-    rows_m = [m for m in results["methods"] if m["group"] == "ablation" or m.get("ablation_label")]
+    rows_m = [
+        m
+        for m in results["methods"]
+        if (m["group"] == "ablation" or m.get("ablation_label")) and not m.get("seed_of")  # copies: `seeds_table`
+    ]
     if not rows_m:
         return None
     conds = [
@@ -196,6 +200,46 @@ def ablation_table(results: dict, scene: str) -> str | None:
         + [_fmt(values[m["name"]][key], key[1], marks[key].get(m["name"])) for key in keys]
         for m in sorted(rows_m, key=lambda m: m.get("ablation_label") or m["label"])
     ]
+    return _table(header, rows)
+
+
+def seeds_table(results: dict, scene: str) -> str | None:
+    """The rows trained again with other seeds (``seeds``): per condition, PSNR and SSIM as mean ± standard deviation
+    over the row and its copies that finished, with their number."""
+    copies: dict[str, list[str]] = {}
+    for m in results["methods"]:
+        if m.get("seed_of"):
+            copies.setdefault(m["seed_of"], []).append(m["name"])
+    bases = [m for m in results["methods"] if m["name"] in copies]
+    conds = [
+        c
+        for c in (*results["conditions"], None)
+        if any(r["scene"] == scene and r["condition"] == c and r["method"] in copies for r in results["runs"])
+    ]
+    if not bases or not conds:
+        return None
+    seeds = {m["name"]: m.get("seed") for m in results["methods"]}
+
+    def spread(values: list[float], fmt: str) -> str:
+        if not values:
+            return "–"
+        mean = sum(values) / len(values)
+        if len(values) == 1:
+            return f"{fmt.format(mean)} (1)"
+        sd = math.sqrt(sum((v - mean) ** 2 for v in values) / (len(values) - 1))
+        return f"{fmt.format(mean)} ± {fmt.format(sd)} ({len(values)})"
+
+    header = ["Row (seeds)"] + [f"{c or 'clean photos'} {m}" for c in conds for m in ("PSNR↑", "SSIM↑")]
+    rows = []
+    for m in bases:
+        names = [m["name"], *copies[m["name"]]]
+        row = [f"{_label(m)} ({', '.join(str(seeds[n]) for n in names)})"]
+        for c in conds:
+            here = {r["method"]: r for r in results["runs"] if r["scene"] == scene and r["condition"] == c}
+            for k in ("psnr", "ssim"):
+                got = [v for n in names if (v := _value(here.get(n), k)) is not None]
+                row.append(spread(got, FORMATS[k]))
+        rows.append(row)
     return _table(header, rows)
 
 
@@ -313,6 +357,9 @@ def markdown_report(results: dict, plots: dict[tuple[str, str], Path] | None = N
         table = ablation_table(results, scene)
         if table:
             out += [f"### {scene}: ablations", "", table, ""]
+        table = seeds_table(results, scene)
+        if table:
+            out += [f"### {scene}: across seeds", "", "Mean ± standard deviation (finished runs).", "", table, ""]
     table = checks_table(results)
     if table:
         verdict = "all hold" if results.get("all_checks_passed") else "**some fail**"

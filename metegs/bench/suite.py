@@ -771,6 +771,8 @@ class SuiteRunner:
                     "overrides": m.overrides,
                     "restorer": m.restorer,
                     "ablation_label": m.ablation_label,
+                    "seed": self.suite.seed if m.seed is None else m.seed,
+                    "seed_of": m.seed_of,
                 }
                 for m in self.methods
             ],

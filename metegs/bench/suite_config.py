@@ -95,6 +95,11 @@ class MethodSpec:
     seed: int | None = None
     """Training seed of this row's runs (None: the suite's); the degraded photos stay the suite seed's draw, so rows
     that differ only in seed measure training's own spread."""
+    seeds: list[int] = field(default_factory=list)
+    """Also train this row with these seeds, as rows ``NAME-seedK`` (ablation group); results.md then gives each
+    cell's mean and standard deviation over the seeds."""
+    seed_of: str | None = None
+    """The row this one repeats with another seed (set on the rows that ``seeds`` adds)."""
     label: str | None = None
     """Row label in tables (default: ``name``)."""
     ablation_label: str | None = None
@@ -270,6 +275,26 @@ def _build(cls, data: Any, where: str):
         raise ConfigError(f"{where}: {exc}") from exc
 
 
+def reseeded(method: MethodSpec, suite_seed: int, where: str) -> list[MethodSpec]:
+    """The rows ``NAME-seedK`` that ``method.seeds`` asks for: the same row with training seed K."""
+    own = suite_seed if method.seed is None else method.seed
+    if len(set(method.seeds)) != len(method.seeds) or own in method.seeds:
+        raise ConfigError(f"{where}: seeds {method.seeds} must differ from each other and from the row's own ({own})")
+    return [
+        dataclasses.replace(
+            method,
+            name=f"{method.name}-seed{k}",
+            label=f"{method.label or method.name}, seed {k}",
+            seed=k,
+            seeds=[],
+            seed_of=method.name,
+            group="ablation",
+            ablation_label=None,
+        )
+        for k in method.seeds
+    ]
+
+
 def suite_from_dict(data: dict[str, Any], source: Path | None = None) -> SuiteConfig:
     """A `SuiteConfig` from parsed YAML (paths relative to ``source``'s folder)."""
     where = str(source) if source else "suite"
@@ -295,6 +320,7 @@ def suite_from_dict(data: dict[str, Any], source: Path | None = None) -> SuiteCo
         if isinstance(m, dict) and isinstance(m.get("peer"), dict) and "ply" in m["peer"]:
             m = {**m, "peer": {**m["peer"], "ply": str(_expand(m["peer"]["ply"], base))}}
         methods.append(_build(MethodSpec, m, f"{where}: methods[{i}]"))
+        methods += reseeded(methods[-1], data.get("seed", 0), f"{where}: methods[{i}]")
     checks = [_build(CheckSpec, c, f"{where}: checks[{i}]") for i, c in enumerate(data.pop("checks", None) or [])]
     if "output" in data and data["output"] is not None:
         data["output"] = Path(os.path.expandvars(os.path.expanduser(str(data["output"]))))

@@ -92,8 +92,9 @@ def test_step_times_metegs_full_beside_3dgs(capsys, monkeypatch):
     cells = {m: [c.strip() for c in next(x for x in lines if f" {m} " in x).strip("│ ").split("│")] for m in
              ("metegs-full", "metegs-full-blind")}  # fmt: skip
     ratio, over_raster = float(cells["metegs-full"][5]), float(cells["metegs-full"][7])
-    assert ratio == pytest.approx(rows[1]["step_ms"] / rows[0]["step_ms"], abs=0.01) and ratio > 1
-    assert over_raster == pytest.approx(rows[1]["step_ms"] / rows[1]["raster_ms"], abs=0.01) and over_raster > 1
+    # the ratios' values are timings, which a loaded machine can turn over: the table must report them as measured
+    assert ratio == pytest.approx(rows[1]["step_ms"] / rows[0]["step_ms"], abs=0.01)
+    assert over_raster == pytest.approx(rows[1]["step_ms"] / rows[1]["raster_ms"], abs=0.01)
     blind = float(cells["metegs-full-blind"][5])
     assert blind == pytest.approx(rows[2]["step_ms"] / rows[0]["step_ms"], abs=0.01)
 

@@ -480,11 +480,12 @@ def test_a_prepared_folder_gives_its_depth_to_a_filtered_call_and_a_row_its_own_
             "conditions": [{"name": "fog", "kind": "fog", "fog": {"visibility_m": 300, "explicit": True}}],
             "methods": [
                 {"name": "3dgs-clean", "photos": "clean", "oracle": True},
-                {"name": "3dgs"},
-                {"name": "3dgs-seed1", "seed": 1},
+                {"name": "3dgs", "seeds": [1]},
             ],
         }
     )
+    copy = suite.method("3dgs-seed1")
+    assert (copy.seed, copy.seed_of, copy.group, copy.seeds) == (1, "3dgs", "ablation", [])
     out = tmp_path / "out"
     prepared = SuiteRunner(suite, output=out, only_methods=["3dgs-clean", "3dgs"]).run(prepare=True)
     assert prepared["failed"] == [] and "files/fog/data" in prepared["prepared"]
@@ -500,3 +501,29 @@ def test_a_prepared_folder_gives_its_depth_to_a_filtered_call_and_a_row_its_own_
         for m in ("3dgs", "3dgs-seed1")
     }
     assert seeds == {"3dgs": 0, "3dgs-seed1": 1}
+    psnr = [r["psnr"] for r in results["runs"]]
+    mean = sum(psnr) / 2
+    report = (out / "results.md").read_text()
+    assert "### files: across seeds" in report and f"| 3dgs (0, 1) | {mean:.2f} ± " in report
+
+
+def test_seeds_table_gives_mean_and_spread_and_a_repeated_seed_is_refused():
+    from metegs.bench.report import ablation_table, seeds_table
+
+    def run(method, psnr, ssim, status="done"):
+        return {"scene": "s", "condition": "c", "method": method, "psnr": psnr, "ssim": ssim, "status": status}
+
+    results = {
+        "conditions": {"c": {}},
+        "methods": [
+            {"name": "a", "label": "A", "group": "main", "seed": 0},
+            {"name": "a-seed1", "label": "A, seed 1", "group": "ablation", "seed": 1, "seed_of": "a"},
+            {"name": "a-seed2", "label": "A, seed 2", "group": "ablation", "seed": 2, "seed_of": "a"},
+        ],
+        "runs": [run("a", 10.0, 0.5), run("a-seed1", 12.0, 0.7), run("a-seed2", None, None, "failed")],
+    }
+    table = seeds_table(results, "s")
+    assert "| A (0, 1, 2) | 10.00" not in table and "| A (0, 1, 2) | 11.00 ± 1.41 (2) | 0.6000 ± 0.1414 (2) |" in table
+    assert ablation_table(results, "s") is None  # the copies are not ablations
+    with pytest.raises(ConfigError, match="seeds"):
+        suite_from_dict({"scenes": [{"name": "x"}], "methods": [{"name": "m", "photos": "clean", "seeds": [0]}]})
