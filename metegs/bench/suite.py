@@ -471,10 +471,44 @@ class SuiteRunner:
             for name, by_scene in out.thetas.items():
                 self.thetas.setdefault(name, {}).update(by_scene)
         self.write_conditions(conditions)
+        earlier, earlier_conditions = self.earlier_records()
+        self.records = earlier + self.records
         results = self.results(conditions, time.perf_counter() - started)
+        results["runs_from_earlier_calls"] = len(earlier)
+        merged = {**earlier_conditions, **results["conditions"]}
+        results["conditions"] = {c.name: merged[c.name] for c in self.suite.conditions if c.name in merged}
         atomic_write_text(self.output / "results.json", json.dumps(results, indent=1, default=str))
         write_report(results, self.output)
         return results
+
+    def earlier_records(self) -> tuple[list[dict], dict[str, dict]]:
+        """The records of the folder's results.json that this call did not redo and that still stand: the suite
+        still has their scene, condition and row, and a finished run's metrics are still on disk. So a call limited
+        by ``--only-…`` adds to the report of earlier sittings instead of replacing it. Also their conditions."""
+        path = self.output / "results.json"
+        try:
+            earlier = json.loads(path.read_text()) if path.is_file() else {}
+            old, old_conditions = list(earlier.get("runs", [])), dict(earlier.get("conditions", {}))
+        except (OSError, ValueError, TypeError, AttributeError):
+            return [], {}  # unreadable: this call's report stands alone
+        redone = {(r["scene"], r["condition"], r["method"]) for r in self.records}
+        scenes = {s.name for s in self.suite.scenes}
+        conditions = {c.name for c in self.suite.conditions}
+        methods = {m.name for m in self.suite.methods}
+        kept = []
+        for r in old:
+            key = (r.get("scene"), r.get("condition"), r.get("method"))
+            if key in redone or key[0] not in scenes or key[2] not in methods:
+                continue
+            if key[1] is not None and key[1] not in conditions:
+                continue
+            if (
+                r.get("status") in ("done", "cached")
+                and not (self.output / str(r.get("run_dir")) / "metrics.json").is_file()
+            ):
+                continue
+            kept.append(r)
+        return kept, {k: v for k, v in old_conditions.items() if any(r["condition"] == k for r in kept)}
 
     # --- jobs --------------------------------------------------------------------------------------
     def plan_jobs(self) -> list[Job]:
@@ -759,7 +793,7 @@ class SuiteRunner:
                 "machine": platform.machine(),
                 "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
             },
-            "scenes": [s.name for s in self.scenes],
+            "scenes": [s.name for s in self.suite.scenes if any(r["scene"] == s.name for r in self.records)],
             "methods": [
                 {
                     "name": m.name,
@@ -774,7 +808,8 @@ class SuiteRunner:
                     "seed": self.suite.seed if m.seed is None else m.seed,
                     "seed_of": m.seed_of,
                 }
-                for m in self.methods
+                for m in self.suite.methods
+                if any(r["method"] == m.name for r in self.records)
             ],
             "conditions": {name: {**c.to_dict(), "theta": self.thetas.get(name, {})} for name, c in conditions.items()},
             "runs": self.records,

@@ -506,6 +506,14 @@ def test_a_prepared_folder_gives_its_depth_to_a_filtered_call_and_a_row_its_own_
     report = (out / "results.md").read_text()
     assert "### files: across seeds" in report and f"| 3dgs (0, 1) | {mean:.2f} ± " in report
 
+    # a later call limited to another row adds to the report; a run whose folder lost its metrics drops out
+    (out / "files" / "fog" / "3dgs-seed1" / "metrics.json").unlink()
+    again = SuiteRunner(suite, output=out, only_methods=["3dgs-clean"]).run()
+    assert sorted((r["method"], r["status"]) for r in again["runs"]) == [("3dgs", "done"), ("3dgs-clean", "cached")]
+    assert again["runs_from_earlier_calls"] == 1 and list(again["conditions"]) == ["fog"]
+    assert [m["name"] for m in again["methods"]] == ["3dgs-clean", "3dgs"]
+    assert "| 3dgs |" in (out / "results.md").read_text()
+
 
 def test_seeds_table_gives_mean_and_spread_and_a_repeated_seed_is_refused():
     from metegs.bench.report import ablation_table, seeds_table
