@@ -4,13 +4,15 @@
 SSIM↑ / LPIPS↓; the best value of a column in **bold**, the second <u>underlined</u>; rows marked
 *oracle*, which see clean photos or clean references, are not ranked), one detail table per condition (PSNR / SSIM / LPIPS,
 training time, Gaussian count, render frames/s), the ablation table, the rows repeated with other seeds (mean ±
-standard deviation), the conditions (record, time, θ) and the checks. ``plots/<scene>__<condition>.png`` draws every method's test PSNR against its wall time
-(training, plus the restoration time for restored photos; the clean-photo rows dashed).
+standard deviation), the conditions (record, time, θ) and the checks. ``plots/<scene>__<condition>.png`` draws
+every method's test PSNR against its wall time (training, plus the restoration time for restored photos; the
+clean-photo rows dashed).
 """
 
 from __future__ import annotations
 
 import math
+import statistics
 from pathlib import Path
 from typing import Any
 
@@ -221,13 +223,9 @@ def seeds_table(results: dict, scene: str) -> str | None:
     seeds = {m["name"]: m.get("seed") for m in results["methods"]}
 
     def spread(values: list[float], fmt: str) -> str:
-        if not values:
-            return "–"
-        mean = sum(values) / len(values)
-        if len(values) == 1:
-            return f"{fmt.format(mean)} (1)"
-        sd = math.sqrt(sum((v - mean) ** 2 for v in values) / (len(values) - 1))
-        return f"{fmt.format(mean)} ± {fmt.format(sd)} ({len(values)})"
+        if len(values) < 2:
+            return f"{fmt.format(values[0])} (1)" if values else "–"
+        return f"{fmt.format(statistics.mean(values))} ± {fmt.format(statistics.stdev(values))} ({len(values)})"
 
     header = ["Row (seeds)"] + [f"{c or 'clean photos'} {m}" for c in conds for m in ("PSNR↑", "SSIM↑")]
     rows = []
@@ -235,7 +233,7 @@ def seeds_table(results: dict, scene: str) -> str | None:
         names = [m["name"], *copies[m["name"]]]
         row = [f"{_label(m)} ({', '.join(str(seeds[n]) for n in names)})"]
         for c in conds:
-            here = {r["method"]: r for r in results["runs"] if r["scene"] == scene and r["condition"] == c}
+            here = cell_records(results["runs"], scene, c)
             for k in ("psnr", "ssim"):
                 got = [v for n in names if (v := _value(here.get(n), k)) is not None]
                 row.append(spread(got, FORMATS[k]))

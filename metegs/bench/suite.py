@@ -459,10 +459,6 @@ class SuiteRunner:
         if prepare:
             jobs = [j for j in jobs if j.action not in ("run", "peer")]
         outputs = (executor or LocalExecutor()).run(self, jobs)
-        if prepare:
-            self.write_conditions(conditions)
-            failed = [j.key for j in jobs if isinstance(outputs[j.key].value, dict) and "error" in outputs[j.key].value]
-            return {"prepared": [j.key for j in jobs], "failed": failed, "seconds": time.perf_counter() - started}
         self.records, self.support, self.thetas = [], [], {}
         for job in jobs:  # in plan order, whichever order the jobs ended in
             out = outputs[job.key]
@@ -471,6 +467,9 @@ class SuiteRunner:
             for name, by_scene in out.thetas.items():
                 self.thetas.setdefault(name, {}).update(by_scene)
         self.write_conditions(conditions)
+        if prepare:
+            failed = [j.key for j in jobs if isinstance(outputs[j.key].value, dict) and "error" in outputs[j.key].value]
+            return {"prepared": [j.key for j in jobs], "failed": failed, "seconds": time.perf_counter() - started}
         earlier, earlier_conditions = self.earlier_records()
         self.records = earlier + self.records
         results = self.results(conditions, time.perf_counter() - started)

@@ -492,6 +492,7 @@ def test_a_prepared_folder_gives_its_depth_to_a_filtered_call_and_a_row_its_own_
     assert (out / "files" / "clean" / "3dgs-clean" / "metrics.json").is_file()
     assert (out / "files" / "fog" / "data" / "weather.json").is_file()
     assert not (out / "files" / "fog" / "3dgs").exists() and not (out / "results.json").exists()
+    assert json.loads((out / "conditions.json").read_text())["conditions"]["fog"]["theta"]["files"]  # θ kept
     results = SuiteRunner(suite, output=out, only_methods=["3dgs", "3dgs-seed1"]).run()
     assert {r["method"]: r["status"] for r in results["runs"]} == {"3dgs": "done", "3dgs-seed1": "done"}
     assert not (out / "files" / "clean" / "_depth-3dgs").exists()
