@@ -7,15 +7,19 @@ a phone's auto-exposure gives. It stands in for the independent family's engine 
 
     python benchmarks/other_generator.py probe VARIANT [--size 160] [--steps 700]   # built-in scene: blind vs 3dgs
     python benchmarks/other_generator.py synth VARIANT -- METEGS_SYNTH_OPTIONS      # a degraded copy of any scene
+    python benchmarks/other_generator.py suite VARIANT SUITE.yaml [-- SUITE_OPTIONS]  # a suite's independent cells
 
 `probe` trains as the CI weather-removal test does (24 views, every 6th held out, heavy rain 22 mm/h and 300 m
 visibility where the variant has them) and prints blind MeteGS's and 3dgs's metrics as JSON; `synth` runs
-`metegs-synth --family independent --kinds ...` with this generator (pass the scene, `--depth-from`, the weather).
+`metegs-synth --family independent --kinds ...` with this generator (pass the scene, `--depth-from`, the weather);
+`suite` runs `metegs-bench suite` with this generator drawing the suite's `family: independent` conditions
+(`configs/bench/real-other.yaml`), and refuses a cell whose photos another generator drew.
 """
 
 from __future__ import annotations
 
 import argparse
+import inspect
 import json
 import sys
 import tempfile
@@ -63,8 +67,8 @@ def streak_mask(rng: np.random.Generator, height: int, width: int, angle_deg: fl
     return np.clip(cv2.filter2D(seeds, -1, kernel, borderType=cv2.BORDER_REFLECT), 0.0, 1.0)
 
 
-def engine_view(variant: Variant):
-    """A replacement of `IndependentEngine.view` that draws ``variant``."""
+def engine_view(variant: Variant, name: str | None = None):
+    """A replacement of `IndependentEngine.view` that draws ``variant`` (``name``: recorded in each view's record)."""
     from metegs.weather.independent import KOSCHMIEDER, pixel_rays
 
     def view(self, i: int, image: np.ndarray, depth: np.ndarray) -> tuple[np.ndarray, dict]:
@@ -86,22 +90,61 @@ def engine_view(variant: Variant):
         if variant.exposure_spread:
             out = out * rng.uniform(1.0 - variant.exposure_spread, 1.0 + variant.exposure_spread)
         record = {"view": i, "name": self.scene.names[i], "family": "other generator", "kinds": "+".join(kinds)}
+        if name is not None:
+            record["variant"] = name
         return np.clip(out, 0.0, 1.0).astype(np.float32), record
 
     return view
 
 
 @contextmanager
-def drawing(variant: Variant):
-    """Within the block the independent family draws ``variant`` (its engine's `view` replaced, then restored)."""
+def drawing(variant: Variant, name: str | None = None):
+    """Within the block the independent family draws ``variant`` (its engine's `view` replaced, then restored;
+    ``name`` goes into each view's record)."""
     from metegs.weather.independent import IndependentEngine
 
     original = IndependentEngine.view
-    IndependentEngine.view = engine_view(variant)
+    IndependentEngine.view = engine_view(variant, name)
     try:
         yield
     finally:
         IndependentEngine.view = original
+
+
+def drawn_by(weather: dict) -> str | None:
+    """The variant that drew a degraded copy (its `weather.json`), None where this generator did not."""
+    views = weather.get("views") or [{}]
+    return views[0].get("variant") if views[0].get("family") == "other generator" else None
+
+
+@contextmanager
+def guarded_cells(variant_name: str):
+    """Within the block the suite's `family: independent` cells are drawn by ``variant_name``, and a cell whose photos
+    are already on disk must have been drawn by it too: the suite reuses a cell's photos, so photos of the independent
+    family or of another variant would otherwise be reported as this variant's."""
+    from metegs.bench import data
+
+    original = data.degraded_dataset
+
+    def degraded_dataset(target, *args, **kwargs):
+        condition = inspect.signature(original).bind(target, *args, **kwargs).arguments["condition"]
+        done = Path(target) / "weather.json"
+        if condition.family == "independent" and done.is_file():
+            found = drawn_by(json.loads(done.read_text()))
+            if found != variant_name:
+                what = f"the {found!r} variant" if found else "another generator"
+                raise SystemExit(
+                    f"{done}: these photos were drawn by {what}, not by {variant_name!r}; "
+                    "name the condition after the variant or give the suite another output folder"
+                )
+        return original(target, *args, **kwargs)
+
+    data.degraded_dataset = degraded_dataset
+    try:
+        with drawing(VARIANTS[variant_name], variant_name):
+            yield
+    finally:
+        data.degraded_dataset = original
 
 
 def blind_config(output_dir: Path, size: int, steps: int, kinds: str, family: str, conditions, **overrides):
@@ -170,15 +213,26 @@ def main() -> None:
     s = sub.add_parser("synth", help="metegs-synth --family independent with this generator")
     s.add_argument("variant", choices=sorted(VARIANTS))
     s.add_argument("synth_args", nargs=argparse.REMAINDER, help="-- then metegs-synth's options")
+    b = sub.add_parser("suite", help="metegs-bench suite, this generator drawing the family: independent cells")
+    b.add_argument("variant", choices=sorted(VARIANTS))
+    b.add_argument("suite_file", type=Path)
+    b.add_argument("suite_args", nargs=argparse.REMAINDER, help="-- then metegs-bench suite's options")
     args = parser.parse_args()
     if args.command == "probe":
         print(json.dumps(probe(args.variant, args.size, args.steps), indent=1, default=str))
+        return
+    if args.command == "suite":
+        from metegs.cli.bench import entrypoint as bench
+
+        sys.argv = ["metegs-bench", "suite", str(args.suite_file), *[a for a in args.suite_args if a != "--"]]
+        with guarded_cells(args.variant):
+            bench()
         return
     from metegs.cli.synth import entrypoint
 
     rest = [a for a in args.synth_args if a != "--"]
     sys.argv = ["metegs-synth", *rest, "--family", "independent"]
-    with drawing(VARIANTS[args.variant]):
+    with drawing(VARIANTS[args.variant], args.variant):
         entrypoint()
 
 

@@ -4,6 +4,7 @@ radiance, and the independent family is itself again after the block."""
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import numpy as np
 import pytest
@@ -57,3 +58,44 @@ def test_its_streaks_only_blend_towards_their_radiance(benchmark_script, scene):
             np.abs(variant.streak_radiance - clean) > 1e-3, variant.streak_radiance - clean, np.inf
         )
         assert (share[changed] >= -1e-4).all() and (share[changed] <= variant.alpha[1] + 1e-4).all()
+
+
+def test_its_views_say_which_variant_drew_them(benchmark_script, scene):
+    g = benchmark_script("other_generator")
+    with g.drawing(g.VARIANTS["rain"], "rain"):
+        _, records = degrade_scene(
+            scene,
+            theta_for_cameras(ConditionsConfig(precip_mm_h=22.0), scene.cameras, MPU),
+            kinds="rain",
+            metres_per_unit=MPU,
+            family="independent",
+        )
+    assert g.drawn_by({"views": records}) == "rain"
+    assert g.drawn_by({"views": [{"family": "independent"}]}) is None
+
+
+def test_a_suite_cell_drawn_by_another_generator_is_refused(benchmark_script, tmp_path):
+    from types import SimpleNamespace
+
+    from metegs.bench import data
+
+    g = benchmark_script("other_generator")
+    cells = {
+        "independent": [{"family": "independent"}],
+        "smog": [{"family": "other generator", "variant": "smog"}],
+        "rain": [{"family": "other generator", "variant": "rain"}],
+    }
+    for name, views in cells.items():
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "weather.json").write_text(json.dumps({"views": views}))
+    independent, physical = SimpleNamespace(family="independent"), SimpleNamespace(family="physical")
+    original = data.degraded_dataset
+    with g.guarded_cells("rain"):
+        for refused in ("independent", "smog"):
+            with pytest.raises(SystemExit, match="not by 'rain'"):
+                data.degraded_dataset(tmp_path / refused, None, None, independent, None, 0)
+        folder, weather = data.degraded_dataset(tmp_path / "rain", None, None, independent, None, 0)
+        assert folder == tmp_path / "rain" and g.drawn_by(weather) == "rain"
+        # metegs's own models draw a physical cell whichever generator draws the independent ones
+        assert data.degraded_dataset(tmp_path / "independent", None, None, physical, None, 0)[0].name == "independent"
+    assert data.degraded_dataset is original

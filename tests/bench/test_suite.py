@@ -35,6 +35,9 @@ def test_the_shipped_suites_parse():
     assert all(s.data is not None and s.train["dataset"]["auto_max_side"] >= 400 for s in real.scenes)
     kinds = {(c.kind, c.family) for c in real.conditions}
     assert kinds == {(k, f) for k in ("rain", "fog", "rain+fog") for f in ("physical", "independent")}
+    other = load_suite(REPO / "configs/bench/real-other.yaml")  # the same captures under a third generator's rain
+    assert [(s.name, s.data, s.train) for s in other.scenes] == [(s.name, s.data, s.train) for s in real.scenes]
+    assert all(c.family == "independent" for c in other.conditions)  # benchmarks/other_generator.py draws them all
 
 
 def _minimal(**extra):
