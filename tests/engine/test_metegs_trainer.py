@@ -736,7 +736,8 @@ def test_the_low_quantile_fit_takes_bright_strokes_out_of_ssim(tmp_path):
 def test_sharp_weather_prunes_opacity_as_3dgs_does(tmp_path):
     """Light rain with no visible medium blurs nothing: the faint Gaussians MeteGS keeps for blurred photos only fit
     single views there (1.1 dB under 3dgs on the Lund street), so training takes 3dgs's threshold and says so; a
-    threshold the user chose stays, and heavy rain keeps MeteGS's."""
+    threshold the user chose stays, and heavy rain keeps MeteGS's, unless, blind, the photos show no medium: streaks
+    over a clear view blur nothing either."""
     from metegs.engine.metegs_config import BLURRED_PRUNE_OPACITY, SHARP_PRUNE_OPACITY
 
     assert SHARP_PRUNE_OPACITY > BLURRED_PRUNE_OPACITY
@@ -749,6 +750,13 @@ def test_sharp_weather_prunes_opacity_as_3dgs_does(tmp_path):
     assert mine.densifier.config.prune_opacity == 0.02 and "opacity pruning" not in mine.decisions
     heavy = tiny_metegs(tmp_path / "heavy", max_steps=3000, densify=default).setup()  # 20 mm/h and 400 m
     assert heavy.densifier.config.prune_opacity == BLURRED_PRUNE_OPACITY and "opacity pruning" not in heavy.decisions
+    # blind, heavy rain whose photos show no veil: streaks over a clear view, which blur nothing of the scene
+    storm, blind = ConditionsConfig(precip_mm_h=20.0), dict(clean_supervision=False, densify=default, max_steps=3000)
+    clear = tiny_metegs(tmp_path / "clear", conditions=storm, min_photo_veil=1.0, **blind).setup()
+    assert not clear.has_medium and clear.densifier.config.prune_opacity == SHARP_PRUNE_OPACITY
+    assert "no visible medium: streaks over a clear view" in clear.decisions["opacity pruning"]
+    veiled = tiny_metegs(tmp_path / "veiled", conditions=storm, min_photo_veil=0.0, **blind).setup()
+    assert veiled.has_medium and veiled.densifier.config.prune_opacity == BLURRED_PRUNE_OPACITY
 
 
 def test_sharp_weather_trains_as_3dgs_does(tmp_path):
