@@ -27,10 +27,12 @@ from metegs.losses.dark_channel import dark_channel_loss
 from metegs.losses.photometric import box_detail
 from metegs.losses.robust import (
     LOW_QUANTILE,
+    THIN_STREAK_PX,
     VEILED_QUANTILE,
     inlier_weights,
     stroke_energy,
     stroke_width_px,
+    thin_strokes,
     without_bright_strokes,
 )
 from metegs.meteo.physics import LN20
@@ -225,6 +227,11 @@ class MeteGSTrainer(Trainer):
         """Width of the square that takes bright strokes out of D-SSIM's pair in the low-quantile fit (1: none)."""
         self.quantile = 0.5
         """Quantile of a pixel's photos that the trimmed L1 fits (0.5: the median; `RobustMaskConfig.quantile`)."""
+        self.thin_width = 1
+        """Width under which a photo's bright stroke is thin enough to be trimmed (`RobustMaskConfig.thin_only`; 1:
+        any outlier is)."""
+        self._thin: dict[int, torch.Tensor] = {}
+        """Training view -> its photo's `thin_strokes` [H, W] (`_thin_strokes`)."""
         if not r.enabled:
             self.decide("robust mask", "off")
             return
@@ -250,6 +257,10 @@ class MeteGSTrainer(Trainer):
                 )
                 return
             seen = f", as the photos show streaks ({strokes})"
+        longer = max(max(size) for size in self.dataset.sizes)
+        if r.thin_only and (streak := stroke_width_px(THIN_STREAK_PX, longer)) > 1:
+            self.thin_width = 2 * streak - 1
+            seen += f"; only the photo's bright strokes under {self.thin_width} px wide (a streak, not a highlight)"
         self.decide(
             "robust mask",
             f"on from step {self.robust_from}: pixels {'brighter' if r.brighter_only else 'further'} than "
@@ -271,7 +282,6 @@ class MeteGSTrainer(Trainer):
                 )
             if r.ssim_lambda is not None:
                 why += f"; D-SSIM at weight {r.ssim_lambda:g} (--robust.ssim-lambda)"
-            longer = max(max(size) for size in self.dataset.sizes)
             self.stroke_width = stroke_width_px(r.stroke_px, longer)
             if self.stroke_width > 1:
                 why += (
@@ -282,6 +292,16 @@ class MeteGSTrainer(Trainer):
             elif r.stroke_px > 0:
                 why += f"; streaks are under 2 px wide at {longer} px, so D-SSIM sees render and photo as they are"
         self.decide("low-quantile fit", why)
+
+    def _thin_strokes(self, index: int) -> torch.Tensor | None:
+        """[H, W] bool: the pixels of view ``index``'s photo that the robust mask may trim (`thin_strokes`, found once
+        per view), or None where any outlier may be."""
+        if self.thin_width <= 1:
+            return None
+        if index not in self._thin:
+            photo = self.dataset.images[index]
+            self._thin[index] = thin_strokes(photo, self.thin_width, self.config.robust.min_excess)
+        return self._thin[index]
 
     def _sampled_photos(self, most: int = 16) -> list[torch.Tensor]:
         """Up to ``most`` training photos [H, W, 3], evenly spread over the training views: what the run asks of the
@@ -953,7 +973,7 @@ class MeteGSTrainer(Trainer):
         c = self.config
         weights, quantile, ssim_lambda, ssim_images = None, 0.5, None, None
         if self.robust_from is not None and self.step >= self.robust_from:
-            weights = inlier_weights(target - render.rgb.detach(), c.robust)
+            weights = inlier_weights(target - render.rgb.detach(), c.robust, self._thin_strokes(index))
             quantile = self.quantile
             if quantile < 0.5:
                 ssim_lambda = c.robust.ssim_lambda  # None: the loss's own

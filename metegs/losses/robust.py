@@ -6,9 +6,10 @@ residual (photo − render, mean over channels) exceeds ``k_sigma`` robust stand
 residuals (1.4826 × the median absolute deviation, so the threshold follows how well the view is fitted: early in
 training, when everything is off, little is left out), and by at least ``min_excess`` (a view fitted closely has
 a tiny σ, and its fine texture is not weather). Rain and drops add light to a photo, so by default only
-residuals where the photo is brighter than the model count (``brighter_only``); outliers are grown by
-``dilate_px`` to take the soft edges of a streak. The weights carry no gradient: they select which pixels the
-photometric loss sees.
+residuals where the photo is brighter than the model count (``brighter_only``), and only in the photo's thin bright
+strokes (``thin_only``, `thin_strokes`: a streak is thin, a highlight that moves from view to view is not); outliers
+are grown by ``dilate_px`` to take the soft edges of a streak. The weights carry no gradient: they select which
+pixels the photometric loss sees.
 
 The mask leaves out what stands out; dense rain also brightens almost every other pixel a little (blurred streak
 tails, a veil), so the median of a pixel's photos, which L1 fits, sits above the clean scene. Rain only ever adds
@@ -51,6 +52,10 @@ light, and a fit held as low as `LOW_QUANTILE` darkens the scene a second time (
 Ethiopian head's heavy rain 20.67 dB against 19.04 at 0.1 and 20.30 at 0.5, the fox's rain + fog 17.29 against 16.46
 and 15.88)."""
 
+THIN_STREAK_PX = 3.0
+"""Width of a rain streak at a longer image side of `STROKE_REFERENCE_SIDE_PX`: the robust mask's `thin_only` test
+opens the photo by a square of twice this less one, scaled with the image (`stroke_width_px`)."""
+
 STROKE_REFERENCE_SIDE_PX = 480
 """Longer image side at which `RobustMaskConfig.stroke_px` is given (a streak's width in px grows with the image)."""
 
@@ -75,6 +80,9 @@ class RobustMaskConfig:
     texture, not weather)."""
     dilate_px: Annotated[int, NON_NEGATIVE] = 1
     """Outliers are grown by this many pixels (the soft edges of a streak)."""
+    thin_only: bool = True
+    """Only pixels of the photo's thin bright strokes can be outliers (`thin_strokes`; where streaks are at least two
+    pixels wide): a streak is thin, a highlight that moves from view to view is not, and trimming it dims the scene."""
     start: Annotated[float, FRACTION] = 0.1
     """Fraction of the run before the mask is used (the scene must first fit something)."""
     min_stroke_energy: Annotated[float, NON_NEGATIVE] = VISIBLE_STROKE_ENERGY
@@ -95,17 +103,30 @@ class RobustMaskConfig:
 
 
 @torch.no_grad()
-def inlier_weights(residual: torch.Tensor, config: RobustMaskConfig) -> torch.Tensor:
-    """[H, W] float weights in {0, 1} of one view from its residual ``residual`` [H, W, 3] (photo − render)."""
+def inlier_weights(
+    residual: torch.Tensor, config: RobustMaskConfig, strokes: torch.Tensor | None = None
+) -> torch.Tensor:
+    """[H, W] float weights in {0, 1} of one view from its residual ``residual`` [H, W, 3] (photo − render); where
+    ``strokes`` [H, W] bool is given (`thin_strokes` of the photo), only its pixels can be outliers."""
     err = residual.mean(dim=-1)
     excess = err - err.median()
     sigma = MAD_TO_SIGMA * excess.abs().median()
     outlier = excess if config.brighter_only else excess.abs()
-    mask = (outlier > torch.clamp(config.k_sigma * sigma, min=config.min_excess)).float()[None, None]
+    mask = outlier > torch.clamp(config.k_sigma * sigma, min=config.min_excess)
+    if strokes is not None:
+        mask &= strokes
+    mask = mask.float()[None, None]
     if config.dilate_px > 0:
         k = 2 * config.dilate_px + 1
         mask = F.max_pool2d(mask, k, stride=1, padding=config.dilate_px)
     return 1.0 - mask[0, 0]
+
+
+@torch.no_grad()
+def thin_strokes(photo: torch.Tensor, width: int, min_excess: float) -> torch.Tensor:
+    """[H, W] bool: the pixels of ``photo`` [H, W, 3] whose bright stroke, narrower than ``width`` px in some
+    direction, stands out of the photo's `open_bright` by more than ``min_excess`` (mean over channels)."""
+    return (photo - open_bright(photo, width)).mean(dim=-1) > min_excess
 
 
 def without_bright_strokes(

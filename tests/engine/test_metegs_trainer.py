@@ -997,3 +997,21 @@ def test_gaussians_at_the_training_cameras_are_gone_when_training_ends(tmp_path)
     assert len(trainer.model) >= scene - 50  # the rest stays (3 steps of densification may prune a few)
     off = tiny_metegs(tmp_path / "off", max_steps=1, camera_clearance=0.0).setup()
     assert off.clearance is None and off.decisions["camera clearance"] == "off"
+
+
+def test_the_robust_mask_trims_only_the_photos_thin_strokes(tmp_path):
+    """Where streaks are two pixels wide or more, only the photo's thin bright strokes may be trimmed (found once per
+    view and said in the decision); `thin_only` off, or smaller images, let any outlier go."""
+    from metegs.losses.robust import thin_strokes
+
+    big = DatasetConfig(synthetic=SyntheticSceneConfig(width=320, height=240, num_views=4, num_points=300))
+    trainer = tiny_metegs(tmp_path / "big", dataset=big).setup()
+    assert trainer.thin_width == 5 and "bright strokes under 5 px wide" in trainer.decisions["robust mask"]
+    view = int(trainer.dataset.train_indices[0])
+    strokes = trainer._thin_strokes(view)
+    assert strokes.dtype == torch.bool and strokes.shape == trainer.dataset.images[view].shape[:2]
+    assert torch.equal(strokes, thin_strokes(trainer.dataset.images[view], 5, trainer.config.robust.min_excess))
+    assert trainer._thin_strokes(view) is strokes  # once per view
+    anything = tiny_metegs(tmp_path / "any", dataset=big, robust=record_robust(thin_only=False)).setup()
+    assert anything._thin_strokes(view) is None and "bright strokes" not in anything.decisions["robust mask"]
+    assert tiny_metegs(tmp_path / "small").setup()._thin_strokes(view) is None  # 64 px: streaks under 2 px

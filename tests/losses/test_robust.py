@@ -16,6 +16,7 @@ from metegs.losses.robust import (
     inlier_weights,
     stroke_energy,
     stroke_width_px,
+    thin_strokes,
     without_bright_strokes,
 )
 from metegs.weather.independent import rain_view
@@ -39,6 +40,22 @@ def test_streaks_are_outliers_and_the_rest_is_kept():
     assert w[streaks].max() == 0
     near = torch.nn.functional.max_pool2d(streaks.float()[None, None], 3, 1, 1)[0, 0].bool()  # dilated by 1 px
     assert w[~near].mean() > 0.99 and w.mean() > 0.7
+
+
+def test_only_a_photo_s_thin_strokes_can_be_trimmed():
+    """A highlight (a bright blob of the photo that the render lacks) is no streak: with the photo's thin strokes
+    given, the streaks are trimmed and the blob stays in the fit."""
+    residual, streaks = _residual_with_streaks()
+    blob = torch.zeros_like(streaks)
+    blob[20:32, 67:76] = True  # 12 x 9 px, between two streaks
+    residual[blob] += 0.5
+    photo = 0.3 + residual  # a flat grey scene under the streaks and the highlight; the render is its grey
+    strokes = thin_strokes(photo, 5, 0.04)
+    assert strokes[streaks].all() and not strokes[blob].any()
+    config = RobustMaskConfig(enabled=True)
+    assert inlier_weights(residual, config)[blob].max() == 0  # any outlier: the highlight goes too
+    thin = inlier_weights(residual, config, strokes)
+    assert thin[streaks].max() == 0 and thin[blob].min() == 1
 
 
 def test_darker_residuals_stay_unless_asked():
