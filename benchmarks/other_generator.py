@@ -139,6 +139,7 @@ def guarded_cells(variant_name: str):
                 )
         return original(target, *args, **kwargs)
 
+    # the suite imports `degraded_dataset` each time it degrades a cell (`SuiteRunner._degraded`), so this reaches it
     data.degraded_dataset = degraded_dataset
     try:
         with drawing(VARIANTS[variant_name], variant_name):

@@ -54,7 +54,8 @@ and 15.88)."""
 
 THIN_STREAK_PX = 3.0
 """Width of a rain streak at a longer image side of `STROKE_REFERENCE_SIDE_PX`: the robust mask's `thin_only` test
-opens the photo by a square of twice this less one, scaled with the image (`stroke_width_px`)."""
+opens the photo by a square of twice this less one, scaled with the image (`stroke_width_px`); D-SSIM's
+`RobustMaskConfig.stroke_px` takes strokes of this width by default."""
 
 STROKE_REFERENCE_SIDE_PX = 480
 """Longer image side at which `RobustMaskConfig.stroke_px` is given (a streak's width in px grows with the image)."""
@@ -95,7 +96,7 @@ class RobustMaskConfig:
     ssim_lambda: Annotated[float | None, FRACTION] = None
     """Weight of the D-SSIM term while the L1 fits the low quantile (None: the loss's own): SSIM asks for the
     photos' local contrast, streaks included, which a fit held under the photos makes by darkening between them."""
-    stroke_px: Annotated[float, NON_NEGATIVE] = 3.0
+    stroke_px: Annotated[float, NON_NEGATIVE] = THIN_STREAK_PX
     """While the L1 fits the low quantile, D-SSIM compares render and photo without the bright strokes narrower
     than this (`without_bright_strokes`), in px at a longer image side of 480 px and scaled with it (0: off; under
     2 px after scaling, nothing is taken): the photo's streaks are not asked of the render, which it would fake by
