@@ -18,9 +18,11 @@ import torch
 
 from metegs.engine.metegs_config import BLURRED_PRUNE_OPACITY, SHARP_PRUNE_OPACITY, MeteGSConfig
 from metegs.engine.optim import adam
+from metegs.engine.run import MIN_ALPHA
 from metegs.engine.trainer import StepRender, Trainer
 from metegs.errors import ConfigError
 from metegs.eval.veil import photo_veil
+from metegs.eval.view_spread import EVEN_SPREAD_RATIO, SPARSE_STREAKS_RATIO, quantile_from_spread, view_spread
 from metegs.gaussians.model import GaussianModel
 from metegs.gaussians.sh import rgb_to_sh
 from metegs.losses.dark_channel import dark_channel_loss
@@ -67,6 +69,10 @@ the contrast falls to 5 %) is at most 3× d. Opacity resets stay off there when 
 cloud (blind, heavy rain and 200 m fog on the Lund street: 13.43 dB without them against 9.87 with them, 12.08
 against 10.37 under the independent family); from random points they clear floaters and stay on (the Ethiopian
 head, independent family: 15.58 dB with them, 15.11 without)."""
+
+MIN_SPREAD_POINTS = 200
+"""Points seen by 6 or more views under which `_choose_quantile` keeps `LOW_QUANTILE` (the Lund street at 3DGS's
+step 300: 698)."""
 
 MEASURED_POINTS = 2048
 """Most starting points at which the photos' fog is measured (`_measured_medium`; evenly spread over the cloud)."""
@@ -227,6 +233,11 @@ class MeteGSTrainer(Trainer):
         """Width of the square that takes bright strokes out of D-SSIM's pair in the low-quantile fit (1: none)."""
         self.quantile = 0.5
         """Quantile of a pixel's photos that the trimmed L1 fits (0.5: the median; `RobustMaskConfig.quantile`)."""
+        self._quantile_reason = ""
+        """What chose `quantile`, if not the record's rain alone (`_decide_quantile`)."""
+        self._quantile_measured = False
+        """Whether the quantile is still to be chosen from how the photos spread about a point's median
+        (`_choose_quantile`, at `robust_from`)."""
         self.thin_width = 1
         """Width under which a photo's bright stroke is thin enough to be trimmed (`RobustMaskConfig.thin_only`; 1:
         any outlier is)."""
@@ -267,31 +278,88 @@ class MeteGSTrainer(Trainer):
             f"{r.k_sigma:g} robust sigmas of their view's residuals (grown by {r.dilate_px} px) are left out{seen}",
         )
         veiled = r.quantile is None and bool(self.dehazing)
-        self.quantile = r.quantile if r.quantile is not None else VEILED_QUANTILE if veiled else LOW_QUANTILE
-        if self.quantile == 0.5:
-            why = "off: --robust.quantile 0.5 (the L1 fits the median of a pixel's photos)"
+        self._low_quantile = VEILED_QUANTILE if veiled else LOW_QUANTILE
+        """The quantile the trimmed L1 fits where rain brightens most of a point's photos (`_choose_quantile`)."""
+        self._quantile_measured = r.quantile is None
+        if r.quantile is not None:
+            self._decide_quantile(r.quantile, "--robust.quantile")
         else:
-            why = (
-                f"on: the trimmed L1 fits the {self.quantile:.0%} quantile of a pixel's photos, not their median: "
-                f"{rain_phrase(rain)} brightens nearly every pixel a little, and rain only adds light"
+            self._decide_quantile(
+                self._low_quantile,
+                f"until step {self.robust_from}, where the photos' spread about a point's median says whether their "
+                "median or this quantile is nearer the clear scene",
             )
-            if veiled:
-                why += (
-                    f" ({self.quantile:.0%}, not {LOW_QUANTILE:.0%}: the dark-channel prior holds the medium, whose "
-                    "veil takes the even part of that light, and a lower fit would darken the scene a second time)"
-                )
-            if r.ssim_lambda is not None:
-                why += f"; D-SSIM at weight {r.ssim_lambda:g} (--robust.ssim-lambda)"
-            self.stroke_width = stroke_width_px(r.stroke_px, longer)
-            if self.stroke_width > 1:
-                why += (
-                    f"; D-SSIM without the bright strokes under {self.stroke_width} px wide and {r.min_excess:g} over "
-                    "their surroundings, in the photo or the render (the photo's streaks, which the render would fake "
-                    "by darkening between them)"
-                )
-            elif r.stroke_px > 0:
-                why += f"; streaks are under 2 px wide at {longer} px, so D-SSIM sees render and photo as they are"
+
+    def _decide_quantile(self, quantile: float, reason: str) -> None:
+        """Fit ``quantile`` of a pixel's photos in the trimmed L1 and say why (``reason``: what chose it, if not the
+        record's rain alone), with the strokes D-SSIM then leaves out (`stroke_width`)."""
+        r, rain = self.config.robust, self.weather_theta(self.scene).rain
+        self.quantile, self.stroke_width, self._quantile_reason = quantile, 1, reason
+        if quantile == 0.5:
+            self.decide("low-quantile fit", f"off: {reason} (the L1 fits the median of a pixel's photos)")
+            return
+        why = (
+            f"on: the trimmed L1 fits the {quantile:.0%} quantile of a pixel's photos, not their median: "
+            f"{rain_phrase(rain)} brightens nearly every pixel a little, and rain only adds light"
+        )
+        if self._low_quantile == VEILED_QUANTILE and r.quantile is None and quantile < 0.5:
+            why += (
+                f" ({quantile:.0%}, not {LOW_QUANTILE:.0%}: the dark-channel prior holds the medium, whose "
+                "veil takes the even part of that light, and a lower fit would darken the scene a second time)"
+            )
+        if reason:
+            why += f"; {reason}"
+        if r.ssim_lambda is not None:
+            why += f"; D-SSIM at weight {r.ssim_lambda:g} (--robust.ssim-lambda)"
+        longer = max(max(size) for size in self.dataset.sizes)
+        self.stroke_width = stroke_width_px(r.stroke_px, longer)
+        if self.stroke_width > 1:
+            why += (
+                f"; D-SSIM without the bright strokes under {self.stroke_width} px wide and {r.min_excess:g} over "
+                "their surroundings, in the photo or the render (the photo's streaks, which the render would fake "
+                "by darkening between them)"
+            )
+        elif r.stroke_px > 0:
+            why += f"; streaks are under 2 px wide at {longer} px, so D-SSIM sees render and photo as they are"
         self.decide("low-quantile fit", why)
+
+    def _choose_quantile(self) -> None:
+        """At `robust_from`, blind of the clear scene: how far above a point's median its photos spread against how far
+        below (`metegs.eval.view_spread`, at the surfaces the run's Gaussians render at that step) moves the quantile
+        from `LOW_QUANTILE` (or, where the dark-channel prior holds the medium, `VEILED_QUANTILE`) towards the median
+        (`quantile_from_spread`)."""
+        self._quantile_measured = False
+        ds, views = self.dataset, list(self.dataset.train_indices)
+        with self.status("reading how the photos spread about the scene's points"), torch.no_grad():
+            scene = self.model.activated()
+            settings = RenderSettings(background=torch.zeros(3, device=self.device), sh_degree=0)
+            depths = []
+            for i in views:
+                out = self.rasterizer.render(scene, ds.cameras[i], settings)
+                depths.append(torch.where(out.alpha >= MIN_ALPHA, out.depth, torch.nan))
+            spread = view_spread(ds.cameras[views], [ds.images[i] for i in views], depths, seed=self.config.seed)
+        low = self._low_quantile
+        if spread.points < MIN_SPREAD_POINTS:
+            self._decide_quantile(low, f"{spread.points} points seen by 6 or more views, too few to read the photos")
+            return
+        quantile = quantile_from_spread(spread.ratio, low)
+        said = (
+            f"at {spread.points} points seen by 6 or more views the photos spread {spread.ratio:.2f} times as far above "
+            f"a point's median as below it ({spread.above:.3f} against {spread.below:.3f}, medians over the points)"
+        )
+        if quantile == 0.5:
+            said += (
+                f", {SPARSE_STREAKS_RATIO:g} or more: the streaks reach too few of a point's views to brighten the "
+                "median of its photos, which a lower fit would darken"
+            )
+        elif quantile == low:
+            said += f", up to {EVEN_SPREAD_RATIO:g}, as evenly as in clear weather: rain brightens most of them"
+        else:
+            said += (
+                f", between {EVEN_SPREAD_RATIO:g} and {SPARSE_STREAKS_RATIO:g}: the streaks reach only some of a "
+                f"point's views, so the fit lies that far from {low:.0%} towards the median"
+            )
+        self._decide_quantile(quantile, said)
 
     def _thin_strokes(self, index: int) -> torch.Tensor | None:
         """[H, W] bool: the pixels of view ``index``'s photo that the robust mask may trim (`thin_strokes`, found once
@@ -974,6 +1042,8 @@ class MeteGSTrainer(Trainer):
         weights, quantile, ssim_lambda, ssim_images = None, 0.5, None, None
         if self.robust_from is not None and self.step >= self.robust_from:
             weights = inlier_weights(target - render.rgb.detach(), c.robust, self._thin_strokes(index))
+            if self._quantile_measured:
+                self._choose_quantile()
             quantile = self.quantile
             if quantile < 0.5:
                 ssim_lambda = c.robust.ssim_lambda  # None: the loss's own
@@ -1066,9 +1136,13 @@ class MeteGSTrainer(Trainer):
             "weather": {m.name: m.state_dict() for m in self.weather_models},
             "method_optimizers": {k: o.state_dict() for k, o in self.method_optimizers.items()},
             "extra_points": None if self.extra_points is None else self.extra_points.state_dict(),
+            "quantile": None if self._quantile_measured else [self.quantile, self._quantile_reason],
         }
 
     def load_extra_state(self, ckpt: dict) -> None:
+        if self._quantile_measured and ckpt.get("quantile") is not None:  # chosen before the checkpoint: keep it
+            self._quantile_measured = False
+            self._decide_quantile(*ckpt["quantile"])
         if self.gtn is not None and ckpt.get("gtn") is not None:
             saved = ckpt["gtn"].get("head_scale.weight")
             if saved is not None and saved.shape[1] != self.config.gtn.width:

@@ -15,7 +15,8 @@ The mask leaves out what stands out; dense rain also brightens almost every othe
 tails, a veil), so the median of a pixel's photos, which L1 fits, sits above the clean scene. Rain only ever adds
 light to a photo (Garg and Nayar, CVPR 2004), so with the mask the L1 fits a low ``quantile`` of a pixel's photos
 (`metegs.losses.photometric.pinball_l1`); a milder one where the dark-channel prior holds the medium, whose veil
-then takes the even part of that light. The SSIM term rewards a render whose local contrast and structure follow
+then takes the even part of that light, and one nearer the median where the photos of a scene point spread far
+further above their median than below (sparse streaks, which leave the median clear; `metegs.eval.view_spread`). The SSIM term rewards a render whose local contrast and structure follow
 the photo's, streaks included, and a fit that may not be brighter than the photos follows them by darkening the gaps
 between the streaks, which leaves dark strokes in the clean scene; during that fit SSIM can compare render and photo
 without their thin bright strokes (``stroke_px``, `without_bright_strokes`) or weigh less (``ssim_lambda``).
@@ -91,8 +92,9 @@ class RobustMaskConfig:
     share one orientation (`stroke_energy`, median): streaks the photos show (0: the record's rain alone decides)."""
     quantile: Annotated[float | None, Range(0.0, 0.5, lo_open=True)] = None
     """With the mask, the L1 fits this quantile of a pixel's photos instead of their median (0.5: plain L1): rain
-    brightens nearly every pixel a little, so the clean scene lies under most of its photos. None: `LOW_QUANTILE`,
-    or `VEILED_QUANTILE` where the dark-channel prior holds the medium."""
+    brightens nearly every pixel a little, so the clean scene lies under most of its photos. None: from `LOW_QUANTILE`
+    (`VEILED_QUANTILE` where the dark-channel prior holds the medium) towards the median as far as the photos of a
+    scene point spread further above their median than below it (`metegs.eval.view_spread`, read at ``start``)."""
     ssim_lambda: Annotated[float | None, FRACTION] = None
     """Weight of the D-SSIM term while the L1 fits the low quantile (None: the loss's own): SSIM asks for the
     photos' local contrast, streaks included, which a fit held under the photos makes by darkening between them."""

@@ -614,6 +614,58 @@ def test_heavy_rain_fits_a_low_quantile_of_the_photos(tmp_path):
     assert losses[0] != pytest.approx(losses[1], rel=1e-3)
 
 
+def test_the_quantile_is_chosen_from_how_the_photos_spread_about_a_point(tmp_path, monkeypatch):
+    """Blind of the clear scene, at `robust_from` the run reads how the photos of the surfaces it renders spread about
+    each point's median (`view_spread`): far above it (streaks reach few of a point's views) the L1 fits the median,
+    about evenly the low quantile, a quantile between them in between, and with too few points the low quantile stays; a resumed run keeps the choice
+    without measuring again."""
+    import metegs.engine.metegs_trainer as trainer_module
+    from metegs.eval.view_spread import ViewSpread
+
+    def chosen(name: str, spread: ViewSpread, **kw):
+        monkeypatch.setattr(trainer_module, "view_spread", lambda *a, **k: spread)
+        trainer = tiny_metegs(tmp_path / name, max_steps=1, **kw).setup()
+        assert (
+            trainer.quantile == 0.1
+            and "until step 0, where the photos' spread" in trainer.decisions["low-quantile fit"]
+        )
+        trainer.step = trainer.robust_from
+        index, background = trainer.dataset.train_indices[0], trainer.background(training=True)
+        with torch.no_grad():
+            render = trainer.photo_render(index, background)
+            trainer.step_loss(index, background, render, trainer.target(index, background), {})
+        return trainer
+
+    sparse = chosen("sparse", ViewSpread(5000, 0.05, 0.12))
+    said = sparse.decisions["low-quantile fit"]
+    assert sparse.quantile == 0.5 and sparse.stroke_width == 1
+    assert said.startswith("off: at 5000 points seen by 6 or more views the photos spread 2.40 times as far above")
+    dense = chosen("dense", ViewSpread(5000, 0.1, 0.11))
+    assert dense.quantile == 0.1 and dense.decisions["low-quantile fit"].startswith("on: the trimmed L1 fits the 10%")
+    assert "spread 1.10 times as far above" in dense.decisions["low-quantile fit"]
+    between = chosen("between", ViewSpread(5000, 0.1, 0.16))
+    assert (
+        between.quantile == 0.3
+        and "between 1.2 and 2: the streaks reach only some" in between.decisions["low-quantile fit"]
+    )
+    few = chosen("few", ViewSpread(12, 0.05, 0.12))
+    assert few.quantile == 0.1 and "12 points seen by 6 or more views, too few" in few.decisions["low-quantile fit"]
+    # the user's quantile is never measured over
+    monkeypatch.setattr(trainer_module, "view_spread", lambda *a, **k: pytest.fail("measured"))
+    asked = tiny_metegs(tmp_path / "asked", max_steps=1, robust=record_robust(quantile=0.1)).setup()
+    assert not asked._quantile_measured and "until step" not in asked.decisions["low-quantile fit"]
+
+    monkeypatch.setattr(trainer_module, "view_spread", lambda *a, **k: ViewSpread(5000, 0.05, 0.12))
+    first = tiny_metegs(tmp_path / "first", max_steps=20).setup()
+    first.train()
+    monkeypatch.setattr(trainer_module, "view_spread", lambda *a, **k: pytest.fail("measured again"))
+    ckpt = first.run_dir / "checkpoints" / "step-000020.ckpt"
+    again = tiny_metegs(tmp_path / "again", max_steps=21, load_checkpoint=ckpt).setup()
+    assert again.quantile == 0.5 and again.decisions["low-quantile fit"] == first.decisions["low-quantile fit"]
+    again.train()
+    assert again.step == 21
+
+
 def test_heavy_rain_the_photos_do_not_show_is_not_trimmed(tmp_path):
     """The record's heavy rain turns the robust mask and the low-quantile fit on only where the training photos show
     streaks (`stroke_energy` at least `RobustMaskConfig.min_stroke_energy`), and the decision says which: the tiny
