@@ -235,7 +235,7 @@ class MeteGSTrainer(Trainer):
         """Quantile of a pixel's photos that the trimmed L1 fits (0.5: the median; `RobustMaskConfig.quantile`)."""
         self._quantile_reason = ""
         """What chose `quantile`, if not the record's rain alone (`_decide_quantile`)."""
-        self._quantile_measured = False
+        self._quantile_pending = False
         """Whether the quantile is still to be chosen from how the photos spread about a point's median
         (`_choose_quantile`, at `robust_from`)."""
         self.thin_width = 1
@@ -280,7 +280,7 @@ class MeteGSTrainer(Trainer):
         veiled = r.quantile is None and bool(self.dehazing)
         self._low_quantile = VEILED_QUANTILE if veiled else LOW_QUANTILE
         """The quantile the trimmed L1 fits where rain brightens most of a point's photos (`_choose_quantile`)."""
-        self._quantile_measured = r.quantile is None
+        self._quantile_pending = r.quantile is None
         if r.quantile is not None:
             self._decide_quantile(r.quantile, "--robust.quantile")
         else:
@@ -328,7 +328,7 @@ class MeteGSTrainer(Trainer):
         below (`metegs.eval.view_spread`, at the surfaces the run's Gaussians render at that step) moves the quantile
         from `LOW_QUANTILE` (or, where the dark-channel prior holds the medium, `VEILED_QUANTILE`) towards the median
         (`quantile_from_spread`)."""
-        self._quantile_measured = False
+        self._quantile_pending = False
         ds, views = self.dataset, list(self.dataset.train_indices)
         with self.status("reading how the photos spread about the scene's points"), torch.no_grad():
             scene = self.model.activated()
@@ -1042,7 +1042,7 @@ class MeteGSTrainer(Trainer):
         weights, quantile, ssim_lambda, ssim_images = None, 0.5, None, None
         if self.robust_from is not None and self.step >= self.robust_from:
             weights = inlier_weights(target - render.rgb.detach(), c.robust, self._thin_strokes(index))
-            if self._quantile_measured:
+            if self._quantile_pending:
                 self._choose_quantile()
             quantile = self.quantile
             if quantile < 0.5:
@@ -1136,12 +1136,12 @@ class MeteGSTrainer(Trainer):
             "weather": {m.name: m.state_dict() for m in self.weather_models},
             "method_optimizers": {k: o.state_dict() for k, o in self.method_optimizers.items()},
             "extra_points": None if self.extra_points is None else self.extra_points.state_dict(),
-            "quantile": None if self._quantile_measured else [self.quantile, self._quantile_reason],
+            "quantile": None if self._quantile_pending else [self.quantile, self._quantile_reason],
         }
 
     def load_extra_state(self, ckpt: dict) -> None:
-        if self._quantile_measured and ckpt.get("quantile") is not None:  # chosen before the checkpoint: keep it
-            self._quantile_measured = False
+        if self._quantile_pending and ckpt.get("quantile") is not None:  # chosen before the checkpoint: keep it
+            self._quantile_pending = False
             self._decide_quantile(*ckpt["quantile"])
         if self.gtn is not None and ckpt.get("gtn") is not None:
             saved = ckpt["gtn"].get("head_scale.weight")

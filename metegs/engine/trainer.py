@@ -683,6 +683,7 @@ class Trainer:
 
         if self.exposure is not None:
             self._decide_test_tone()
+        self.save_decisions()  # with those made while training (MeteGS's `low-quantile fit`)
         m = self.record_eval(quick=False)
         idx = self.dataset.test_indices or self.dataset.train_indices
         split = "test" if self.dataset.test_indices else "train"
@@ -733,7 +734,6 @@ class Trainer:
             f"{chosen} (each training photo's tone from its nearest other photo's: {near:.4f} RMS; from the "
             f"others' average: {average:.4f})",
         )
-        self.save_decisions()
 
     def extra_metrics(self) -> dict:
         """Method-specific entries of metrics.json (none for plain 3DGS)."""

@@ -653,11 +653,13 @@ def test_the_quantile_is_chosen_from_how_the_photos_spread_about_a_point(tmp_pat
     # the user's quantile is never measured over
     monkeypatch.setattr(trainer_module, "view_spread", lambda *a, **k: pytest.fail("measured"))
     asked = tiny_metegs(tmp_path / "asked", max_steps=1, robust=record_robust(quantile=0.1)).setup()
-    assert not asked._quantile_measured and "until step" not in asked.decisions["low-quantile fit"]
+    assert not asked._quantile_pending and "until step" not in asked.decisions["low-quantile fit"]
 
     monkeypatch.setattr(trainer_module, "view_spread", lambda *a, **k: ViewSpread(5000, 0.05, 0.12))
     first = tiny_metegs(tmp_path / "first", max_steps=20).setup()
     first.train()
+    saved = json.loads((first.run_dir / "decisions.json").read_text())["decisions"]["low-quantile fit"]
+    assert saved == first.decisions["low-quantile fit"] and saved.startswith("off: at 5000 points")  # made in training
     monkeypatch.setattr(trainer_module, "view_spread", lambda *a, **k: pytest.fail("measured again"))
     ckpt = first.run_dir / "checkpoints" / "step-000020.ckpt"
     again = tiny_metegs(tmp_path / "again", max_steps=21, load_checkpoint=ckpt).setup()
