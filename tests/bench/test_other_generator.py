@@ -99,3 +99,13 @@ def test_a_suite_cell_drawn_by_another_generator_is_refused(benchmark_script, tm
         # metegs's own models draw a physical cell whichever generator draws the independent ones
         assert data.degraded_dataset(tmp_path / "independent", None, None, physical, None, 0)[0].name == "independent"
     assert data.degraded_dataset is original
+    # through the suite itself, which looks the function up each time it degrades a cell (an import of it at the top
+    # of metegs.bench.suite would bind the unguarded one and pass another generator's photos as this one's)
+    from metegs.bench.suite import SuiteRunner
+
+    (tmp_path / "cell" / "data").mkdir(parents=True)
+    (tmp_path / "cell" / "data" / "weather.json").write_text(json.dumps({"views": cells["smog"]}))
+    runner = SimpleNamespace(suite=SimpleNamespace(seed=0), console=None, thetas={})
+    suite_scene = SimpleNamespace(name="s", data=None, parser=None, in_memory=True, synth=None)
+    with g.guarded_cells("rain"), pytest.raises(SystemExit, match="not by 'rain'"):
+        SuiteRunner._degraded(runner, suite_scene, independent, tmp_path / "cell", None, None)
