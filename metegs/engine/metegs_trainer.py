@@ -18,7 +18,7 @@ import torch
 
 from metegs.engine.metegs_config import BLURRED_PRUNE_OPACITY, SHARP_PRUNE_OPACITY, MeteGSConfig
 from metegs.engine.optim import adam
-from metegs.engine.run import MIN_ALPHA
+from metegs.engine.run import surface_depth
 from metegs.engine.trainer import StepRender, Trainer
 from metegs.errors import ConfigError
 from metegs.eval.veil import photo_veil
@@ -302,7 +302,7 @@ class MeteGSTrainer(Trainer):
             f"on: the trimmed L1 fits the {quantile:.0%} quantile of a pixel's photos, not their median: "
             f"{rain_phrase(rain)} brightens nearly every pixel a little, and rain only adds light"
         )
-        if self._low_quantile == VEILED_QUANTILE and r.quantile is None and quantile < 0.5:
+        if self._low_quantile == VEILED_QUANTILE and r.quantile is None:
             why += (
                 f" ({quantile:.0%}, not {LOW_QUANTILE:.0%}: the dark-channel prior holds the medium, whose "
                 "veil takes the even part of that light, and a lower fit would darken the scene a second time)"
@@ -332,11 +332,7 @@ class MeteGSTrainer(Trainer):
         ds, views = self.dataset, list(self.dataset.train_indices)
         with self.status("reading how the photos spread about the scene's points"), torch.no_grad():
             scene = self.model.activated()
-            settings = RenderSettings(background=torch.zeros(3, device=self.device), sh_degree=0)
-            depths = []
-            for i in views:
-                out = self.rasterizer.render(scene, ds.cameras[i], settings)
-                depths.append(torch.where(out.alpha >= MIN_ALPHA, out.depth, torch.nan))
+            depths = [surface_depth(self.rasterizer, scene, ds.cameras[i]) for i in views]
             spread = view_spread(ds.cameras[views], [ds.images[i] for i in views], depths, seed=self.config.seed)
         low = self._low_quantile
         if spread.points < MIN_SPREAD_POINTS:

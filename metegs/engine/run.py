@@ -163,6 +163,18 @@ def cameras_match(a, b, atol: float = 1e-4) -> bool:
     return bool(same_pose and torch.allclose(fov_a, fov_b, rtol=1e-3))
 
 
+def surface_depth(rasterizer, gaussians, camera):
+    """[H, W] z-depth of ``rasterizer``'s render of ``gaussians`` (activated) through one ``camera`` (on their device),
+    NaN where the render's opacity is below ``MIN_ALPHA``."""
+    import torch
+
+    from metegs.render.base import RenderSettings
+
+    with torch.no_grad():
+        out = rasterizer.render(gaussians, camera, RenderSettings(background=(0.0, 0.0, 0.0), sh_degree=0))
+    return torch.where(out.alpha >= MIN_ALPHA, out.depth, torch.full_like(out.depth, float("nan")))
+
+
 def depths_from_run(
     run_dir: Path,
     scene: SceneData,
@@ -175,9 +187,6 @@ def depths_from_run(
     Returns (depths [H, W] float32 in scene units with NaN where the render's opacity is below
     ``MIN_ALPHA``, a description of the source). The run must have been trained on the same cameras.
     """
-    import torch
-
-    from metegs.render.base import RenderSettings
 
     run_dir = Path(run_dir)
     trainer = load_run(run_dir, checkpoint, device=device)
@@ -189,14 +198,11 @@ def depths_from_run(
             "give the run of this dataset",
         )
     model = trainer.model.activated()
-    settings = RenderSettings(background=(0.0, 0.0, 0.0), sh_degree=trainer.model.active_sh_degree)
     depths = []
-    with torch.no_grad():
-        for i in range(len(scene)):
-            out = trainer.rasterizer.render(model, scene.cameras[i].to(trainer.device), settings)
-            d = torch.where(out.alpha >= MIN_ALPHA, out.depth, torch.full_like(out.depth, float("nan")))
-            depths.append(d.float().cpu().numpy())
-            if progress is not None:
-                progress(i)
+    for i in range(len(scene)):
+        depth = surface_depth(trainer.rasterizer, model, scene.cameras[i].to(trainer.device))
+        depths.append(depth.float().cpu().numpy())
+        if progress is not None:
+            progress(i)
     ckpt = checkpoint or "latest checkpoint"
     return depths, f"rendered from run {run_dir.resolve()} ({trainer.config.method}, {ckpt}, step {trainer.step})"

@@ -16,10 +16,11 @@ tails, a veil), so the median of a pixel's photos, which L1 fits, sits above the
 light to a photo (Garg and Nayar, CVPR 2004), so with the mask the L1 fits a low ``quantile`` of a pixel's photos
 (`metegs.losses.photometric.pinball_l1`); a milder one where the dark-channel prior holds the medium, whose veil
 then takes the even part of that light, and one nearer the median where the photos of a scene point spread far
-further above their median than below (sparse streaks, which leave the median clear; `metegs.eval.view_spread`). The SSIM term rewards a render whose local contrast and structure follow
-the photo's, streaks included, and a fit that may not be brighter than the photos follows them by darkening the gaps
-between the streaks, which leaves dark strokes in the clean scene; during that fit SSIM can compare render and photo
-without their thin bright strokes (``stroke_px``, `without_bright_strokes`) or weigh less (``ssim_lambda``).
+further above their median than below (sparse streaks, which leave the median clear; `metegs.eval.view_spread`).
+The SSIM term rewards a render whose local contrast and structure follow the photo's, streaks included, and a fit
+that may not be brighter than the photos follows them by darkening the gaps between the streaks, which leaves dark
+strokes in the clean scene; during that fit SSIM can compare render and photo without their thin bright strokes
+(``stroke_px``, `without_bright_strokes`) or weigh less (``ssim_lambda``).
 
 The record says how hard it rains; the photos say whether there are streaks to trim. The mask goes on only where the
 training photos' thin bright strokes of one orientation hold enough energy (`stroke_energy`, ``min_stroke_energy``):
