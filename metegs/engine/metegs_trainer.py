@@ -934,8 +934,9 @@ class MeteGSTrainer(Trainer):
 
     def make_densifier(self):
         """The configured densification with depth-aware pruning (`depth_prune`) as its pruning rule where the weather
-        blurs the photos, and without opacity resets where a visible medium dims the views with no rain to clear, or
-        where the fog is dense over an SfM cloud (`DENSE_OPTICAL_DEPTH`)."""
+        blurs the photos, and, blind, without opacity resets where a visible medium dims the views with no rain to
+        clear, or where the fog is dense over an SfM cloud (`DENSE_OPTICAL_DEPTH`): beside clean references the clean
+        branch's undimmed gradients regrow what a reset takes."""
         from metegs.densify.depth_prune import DepthAwarePruning
 
         c, rule, sharp, blind_sharp = self.config, None, self._sharp_weather(), self._blind_sharp_weather()
@@ -974,6 +975,13 @@ class MeteGSTrainer(Trainer):
                 "fits the rain"
             )
         else:
+            return densifier
+        if self.use_clean:
+            self.decide(
+                "opacity reset",
+                "on: the clean references' gradients, which no fog dims, regrow what a reset takes (blind they would "
+                f"be off: {why})",
+            )
             return densifier
         self.decide("opacity reset", f"off: {why}")
         return build(replace(densify, reset_every=0.0))

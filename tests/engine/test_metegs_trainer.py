@@ -853,36 +853,38 @@ def test_sharp_weather_trains_as_3dgs_does(tmp_path):
     assert blind.extra_points is not None and blind.decisions["depth pruning"].startswith("on")
 
 
-def test_opacity_resets_stay_on_with_the_gtn_where_it_rains_under_thin_fog(tmp_path):
-    """Resets remove the Gaussians that fitted single photos' streaks (measured on two real captures): with rain
-    the GTN keeps the plain 3DGS schedule; under fog alone, or fog dense at the scene's depth (visibility under 3×
-    it) over an SfM cloud, they only cost Gaussians, and are off."""
+def test_opacity_resets_are_off_only_where_blind_training_regrows_under_the_fog(tmp_path):
+    """Resets remove the Gaussians that fitted single photos' streaks (measured on two real captures): where it
+    rains under thin fog the plain 3DGS schedule stays; blind, under fog alone, or fog dense at the scene's depth
+    (visibility under 3× it) over an SfM cloud, the fog-dimmed gradients hardly regrow what a reset takes, and they are
+    off. Beside clean references, whose gradients no fog dims, they stay on and say so."""
     from metegs.densify.adc import AdaptiveDensityControl
     from metegs.engine.metegs_trainer import DENSE_OPTICAL_DEPTH
 
-    rain = tiny_metegs(tmp_path / "rain", max_steps=3000, densify=ADCConfig()).setup()  # 20 mm/h and 400 m
-    assert rain.gtn is not None and "opacity reset" not in rain.decisions
+    rain = tiny_metegs(tmp_path / "rain", max_steps=3000, densify=ADCConfig(), clean_supervision=False).setup()
+    assert "opacity reset" not in rain.decisions  # 20 mm/h and 400 m
     assert 0 < rain.medium_optical_depth < DENSE_OPTICAL_DEPTH
-    dense = ConditionsConfig(precip_mm_h=20.0, visibility_m=100.0, wind_speed_m_s=4.0, wind_dir_deg=90.0)
-    storm = tiny_metegs(tmp_path / "storm", max_steps=3000, densify=ADCConfig(), conditions=dense).setup()
-    assert storm.medium_optical_depth >= DENSE_OPTICAL_DEPTH and storm.densifier.reset_every == 0
-    assert storm.decisions["opacity reset"].startswith("off: the medium's optical depth")
-    # from random points resets clear their floaters, also in dense fog
-    model = replace(storm.config.model, random_init=True)
-    floaters = tiny_metegs(tmp_path / "random", max_steps=3000, densify=ADCConfig(), conditions=dense, model=model)
-    assert "opacity reset" not in floaters.setup().decisions
     plain = AdaptiveDensityControl(ADCConfig(), 3000, rain.extent, len(rain.dataset.train_indices))
     assert rain.densifier.reset_every == plain.reset_every > 0
+    dense = ConditionsConfig(precip_mm_h=20.0, visibility_m=100.0, wind_speed_m_s=4.0, wind_dir_deg=90.0)
     fog = ConditionsConfig(precip_mm_h=0.0, visibility_m=300.0, metres_per_unit=100.0)
-    foggy = tiny_metegs(tmp_path / "fog", max_steps=3000, densify=ADCConfig(), conditions=fog).setup()
-    assert foggy.gtn is not None and foggy.densifier.reset_every == 0
-    assert foggy.decisions["opacity reset"].startswith("off: no rain leaves no streaks")
-    # the rule follows the weather, not the GTN: blind training, without it, keeps them off too
-    blind = tiny_metegs(
-        tmp_path / "blind", max_steps=3000, densify=ADCConfig(), conditions=fog, clean_supervision=False
-    )
-    blind = blind.setup()
-    assert blind.gtn is None and blind.densifier.reset_every == 0
+    blind = {}
+    for name, conditions, why in (("storm", dense, "off: the medium's optical depth"), ("fog", fog, "off: no rain")):
+        config = tiny_metegs(
+            tmp_path / name, max_steps=3000, densify=ADCConfig(), conditions=conditions, clean_supervision=False
+        )
+        blind[name] = config.setup()
+        assert blind[name].densifier.reset_every == 0, name
+        assert blind[name].decisions["opacity reset"].startswith(why), name
+        refs = replace(config, clean_supervision=True, output_dir=tmp_path / f"{name}-refs").setup()
+        assert refs.use_clean and refs.densifier.reset_every == plain.reset_every, name
+        assert refs.decisions["opacity reset"].startswith("on: the clean references"), name
+        assert why[5:] in refs.decisions["opacity reset"], name  # the blind rule it overrides, named
+    assert blind["storm"].medium_optical_depth >= DENSE_OPTICAL_DEPTH
+    # from random points resets clear their floaters, also in dense fog
+    storm = blind["storm"].config
+    floaters = replace(storm, model=replace(storm.model, random_init=True), output_dir=tmp_path / "random")
+    assert "opacity reset" not in floaters.setup().decisions
 
 
 def test_view_exposure_auto_is_off_beside_a_fog_model_and_3dgs_s_rule_without(tmp_path):
