@@ -7,9 +7,9 @@ residuals (1.4826 × the median absolute deviation, so the threshold follows how
 training, when everything is off, little is left out), and by at least ``min_excess`` (a view fitted closely has
 a tiny σ, and its fine texture is not weather). Rain and drops add light to a photo, so by default only
 residuals where the photo is brighter than the model count (``brighter_only``), and only in the photo's thin bright
-strokes (``thin_only``, `thin_strokes`: a streak is thin, a highlight that moves from view to view is not); outliers
-are grown by ``dilate_px`` to take the soft edges of a streak. The weights carry no gradient: they select which
-pixels the photometric loss sees.
+strokes that run the way most of them run (``thin_only``, `thin_strokes`: a streak is thin and falls with its rain,
+a highlight that moves from view to view is neither); outliers are grown by ``dilate_px`` to take the soft edges of
+a streak. The weights carry no gradient: they select which pixels the photometric loss sees.
 
 The mask leaves out what stands out; dense rain also brightens almost every other pixel a little (blurred streak
 tails, a veil), so the median of a pixel's photos, which L1 fits, sits above the clean scene. Rain only ever adds
@@ -62,6 +62,11 @@ opens the photo by a square of twice this less one, scaled with the image (`stro
 STROKE_REFERENCE_SIDE_PX = 480
 """Longer image side at which `RobustMaskConfig.stroke_px` is given (a streak's width in px grows with the image)."""
 
+STROKE_TURN_STEPS = 2
+"""How many of the line filters' 15° steps a stroke may turn from its photo's main orientation and still count as
+rain (`along_the_strokes`): the independent family draws each streak layer's angle about its view's with a spread of
+10° in heavy rain; a scene's bright edges, going every way, fall outside in 7 of 12 orientations."""
+
 VISIBLE_STROKE_ENERGY = 0.002
 """`stroke_energy` (median over the training photos) from which the photos show rain streaks: 0.0038-0.0079 under
 the independent family's streak layers (Ethiopian head, fox), 0.0003-0.0011 on their clear photos, under metegs's
@@ -85,7 +90,8 @@ class RobustMaskConfig:
     """Outliers are grown by this many pixels (the soft edges of a streak)."""
     thin_only: bool = True
     """Only pixels of the photo's thin bright strokes can be outliers (`thin_strokes`; where streaks are at least two
-    pixels wide): a streak is thin, a highlight that moves from view to view is not, and trimming it dims the scene."""
+    pixels wide) that run the way most of its strokes run: a streak is thin and falls with its rain, a highlight that
+    moves from view to view is neither, and trimming it dims the scene."""
     start: Annotated[float, FRACTION] = 0.1
     """Fraction of the run before the mask is used (the scene must first fit something)."""
     min_stroke_energy: Annotated[float, NON_NEGATIVE] = VISIBLE_STROKE_ENERGY
@@ -129,8 +135,27 @@ def inlier_weights(
 @torch.no_grad()
 def thin_strokes(photo: torch.Tensor, width: int, min_excess: float) -> torch.Tensor:
     """[H, W] bool: the pixels of ``photo`` [H, W, 3] whose bright stroke, narrower than ``width`` px in some
-    direction, stands out of the photo's `open_bright` by more than ``min_excess`` (mean over channels)."""
-    return (photo - open_bright(photo, width)).mean(dim=-1) > min_excess
+    direction, stands out of the photo's `open_bright` by more than ``min_excess`` (mean over channels), and runs
+    the way the photo's strokes run most (`along_the_strokes`): a streak falls with its rain, the bright edges of a
+    scene (a metal head's highlights) go every way."""
+    top_hat = (photo - open_bright(photo, width)).mean(dim=-1)
+    return (top_hat > min_excess) & along_the_strokes(top_hat)
+
+
+@torch.no_grad()
+def along_the_strokes(top_hat: torch.Tensor) -> torch.Tensor:
+    """[H, W] bool: the pixels of a photo's top-hat ``top_hat`` [H, W] whose strongest oriented line filter
+    (`line_responses`) is within `STROKE_TURN_STEPS` of the one that answers the whole photo most. A photo twice
+    `STROKE_REFERENCE_SIDE_PX` or more is read in blocks of a whole number of pixels, which keeps its longer side at
+    that reference or over (where `stroke_energy` reads it too), and each pixel takes its block's answer."""
+    h, w = top_hat.shape
+    block = max(1, max(h, w) // STROKE_REFERENCE_SIDE_PX)
+    x = F.avg_pool2d(top_hat.float()[None, None], block, ceil_mode=True) if block > 1 else top_hat.float()[None, None]
+    response = line_responses(x)
+    steps = response.shape[0]
+    turn = (response.argmax(dim=0) - response.mean(dim=(1, 2)).argmax()).abs()
+    along = torch.minimum(turn, steps - turn) <= STROKE_TURN_STEPS
+    return along.repeat_interleave(block, 0).repeat_interleave(block, 1)[:h, :w]
 
 
 def without_bright_strokes(

@@ -58,6 +58,44 @@ def test_only_a_photo_s_thin_strokes_can_be_trimmed():
     assert thin[streaks].max() == 0 and thin[blob].min() == 1
 
 
+def _line(h: int, w: int, x0: float, y0: float, degrees: float, length: int) -> torch.Tensor:
+    """[h, w] bool: a 1-px line of ``length`` px from (x0, y0), ``degrees`` from the image's vertical."""
+    line = torch.zeros(h, w, dtype=torch.bool)
+    a = np.radians(degrees)
+    for s in range(length):
+        x, y = round(x0 + s * np.sin(a)), round(y0 + s * np.cos(a))
+        if 0 <= x < w and 0 <= y < h:
+            line[y, x] = True
+    return line
+
+
+def test_only_strokes_that_run_with_the_rain_can_be_trimmed():
+    """Streaks fall one way in a photo (a layer may turn from it by 20°); a scene's bright thin edges across them
+    (a highlight's rim, a window frame) are thin strokes too, but run another way, and stay in the fit."""
+    h, w = 96, 128
+    streaks = torch.zeros(h, w, dtype=torch.bool)
+    for x in range(4, w, 10):
+        streaks |= _line(h, w, x, 4, 0.0, 40)  # the rain: vertical
+    turned = torch.zeros_like(streaks)
+    for x in range(9, w, 20):
+        turned |= _line(h, w, x, 50, 20.0, 30)  # another layer, 20° turned
+    edges = _line(h, w, 20, 70, 90.0, 90) | _line(h, w, 30, 90, 70.0, 80)  # across the rain: 90° and 70°
+    photo = torch.full((h, w, 3), 0.3)
+    photo[streaks | turned | edges] = 0.8
+    thin = thin_strokes(photo, 5, 0.04)
+    inside = torch.zeros_like(streaks)
+    inside[8:-8, 8:-8] = True  # away from the border, where the line filters see reflected lines
+    assert thin[streaks & ~edges & inside].float().mean() > 0.95
+    assert thin[turned & ~edges & ~streaks & inside].float().mean() > 0.9
+    assert thin[edges & ~streaks & ~turned & inside].float().mean() < 0.1
+    assert ((photo - 0.3).mean(-1) > 0.04)[edges].all()  # they are bright and thin: only their way tells them apart
+    # a photo twice the reference side or more is read in blocks: 10x larger (strokes 10 px wide), the same answer
+    large = photo.repeat_interleave(10, 0).repeat_interleave(10, 1)  # 960 x 1280 px: blocks of 2 x 2
+    thin_large = thin_strokes(large, 21, 0.04)[5::10, 5::10]
+    assert thin_large[streaks & ~edges & inside].float().mean() > 0.9
+    assert thin_large[edges & ~streaks & ~turned & inside].float().mean() < 0.1
+
+
 def test_darker_residuals_stay_unless_asked():
     residual, streaks = _residual_with_streaks()
     assert inlier_weights(-residual, RobustMaskConfig(enabled=True))[streaks].min() == 1
