@@ -150,8 +150,7 @@ def along_the_strokes(top_hat: torch.Tensor) -> torch.Tensor:
     that reference or over (where `stroke_energy` reads it too), and each pixel takes its block's answer."""
     h, w = top_hat.shape
     block = max(1, max(h, w) // STROKE_REFERENCE_SIDE_PX)
-    x = F.avg_pool2d(top_hat.float()[None, None], block, ceil_mode=True) if block > 1 else top_hat.float()[None, None]
-    response = line_responses(x)
+    response = line_responses(F.avg_pool2d(top_hat.float()[None, None], block, ceil_mode=True))
     steps = response.shape[0]
     turn = (response.argmax(dim=0) - response.mean(dim=(1, 2)).argmax()).abs()
     along = torch.minimum(turn, steps - turn) <= STROKE_TURN_STEPS
