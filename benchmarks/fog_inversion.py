@@ -84,7 +84,7 @@ def score_run(trainer, degraded, every: int) -> dict:
                 errors["that fit's residual / t"] = fit / seen.clamp_min(0.05)
         for name, e in errors.items():
             sums.setdefault(name, []).append(float((e**2).mean()))
-    return {name: -10.0 * math.log10(sum(v) / len(v)) for name, v in sums.items()}
+    return {name: -10.0 * math.log10(max(sum(v) / len(v), 1e-12)) for name, v in sums.items()}
 
 
 def main() -> None:
