@@ -42,6 +42,9 @@ class SfmOptions:
     """Longest side (px) at which features are extracted; 0 keeps the photos' size."""
     max_features: int = 8192
     """SIFT features kept per photo."""
+    peak_threshold: float = 0.0
+    """SIFT's contrast threshold on the difference of Gaussians (0: COLMAP's 0.02/3); a lower one finds the
+    features of low-contrast photos (fog, haze) that the default drops."""
     accurate_features: bool = False
     """SIFT with affine shape and domain-size pooling plus guided matching: 2-3x slower, registers more
     views of weakly textured or turning objects."""
@@ -149,6 +152,8 @@ def _extract(
     extraction.max_image_size = opts.max_image_size if opts.max_image_size > 0 else -1
     extraction.num_threads = opts.num_threads
     extraction.sift.max_num_features = opts.max_features
+    if opts.peak_threshold > 0:
+        extraction.sift.peak_threshold = opts.peak_threshold
     extraction.sift.estimate_affine_shape = opts.accurate_features
     extraction.sift.domain_size_pooling = opts.accurate_features
     mode = pycolmap.CameraMode.SINGLE if opts.single_camera else pycolmap.CameraMode.PER_IMAGE

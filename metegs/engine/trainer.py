@@ -334,7 +334,14 @@ class Trainer:
         if not mc.triangulate or photos is None:
             return None
         from metegs.config import scene_cache
-        from metegs.data.triangulate import CACHE_DIR, triangulate_known_poses
+        from metegs.data.triangulate import (
+            CACHE_DIR,
+            CLEAR_CONTRAST,
+            SIFT_PEAK_THRESHOLD,
+            contrast_options,
+            photo_contrast,
+            triangulate_known_poses,
+        )
 
         views = self.dataset.train_indices
         source = self.scene.source
@@ -345,16 +352,24 @@ class Trainer:
         except ImportError:
             why = "pycolmap is not installed to triangulate points from the views (pip install pycolmap)"
             return self._swept_points(images, photos, whose, cache, why)
+        contrast = photo_contrast([images[i] for i in views])
+        opts = contrast_options(contrast)
         try:
             with self.status(f"triangulating points from {len(views)} training views' {whose} (pycolmap)"):
-                found = triangulate_known_poses([photos[i] for i in views], self.scene.cameras[views], cache)
+                found = triangulate_known_poses([photos[i] for i in views], self.scene.cameras[views], cache, opts)
         except (RuntimeError, ValueError, OSError) as exc:
             why = f"triangulation failed: {exc}"
             return self._swept_points(images, photos, whose, cache, why)
         self.decide(
             "init",
             f"{len(found.points)} points triangulated from {found.num_views} training views' {whose} at their known poses "
-            f"(mean reprojection error {found.reprojection_error_px:.2f} px; cache {found.cache})",
+            f"(mean reprojection error {found.reprojection_error_px:.2f} px; cache {found.cache})"
+            + (
+                f"; SIFT's contrast threshold {opts.peak_threshold:.2g}, COLMAP's times {opts.peak_threshold / SIFT_PEAK_THRESHOLD:.2f}: "
+                f"the photos' brightness spans {contrast:.2f}, a clear photo's about {CLEAR_CONTRAST:g}"
+                if opts.peak_threshold > 0
+                else ""
+            ),
         )
         return found.points, found.colors
 

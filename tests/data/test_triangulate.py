@@ -81,6 +81,34 @@ def test_points_lie_on_the_scene_surfaces(photographed, tmp_path):
     assert found.colors.std() > 0.05
 
 
+def _points_or_none(paths, cameras, opts=None) -> int:
+    """How many points triangulation finds (0 where it finds too few to return)."""
+    try:
+        return len(triangulate_known_poses(paths, cameras, None, opts).points)
+    except RuntimeError:
+        return 0
+
+
+def test_hazed_photos_lower_sifts_contrast_threshold_and_keep_their_points(photographed, tmp_path):
+    """Fog leaves a third of a clear photo's contrast, and SIFT's fixed threshold drops features with it; the
+    threshold scaled by the photos' span finds them again, on the scene's surfaces."""
+    scene, paths = photographed
+    cams = scene.cameras[list(range(VIEWS))]
+    clear = [torch.as_tensor(scene.images[i]) for i in range(VIEWS)]
+    assert tri.contrast_options(tri.photo_contrast(clear)).peak_threshold == 0  # COLMAP's own for clear photos
+    hazed = [0.3 * image + 0.6 for image in clear]
+    hazed_paths = [tmp_path / p.name for p in paths]
+    for path, image in zip(hazed_paths, hazed):
+        save_image(path, image)
+    opts = tri.contrast_options(tri.photo_contrast(hazed))
+    assert 0 < opts.peak_threshold < 0.5 * tri.SIFT_PEAK_THRESHOLD
+    default = _points_or_none(hazed_paths, cams)
+    scaled = triangulate_known_poses(hazed_paths, cams, None, opts)
+    assert len(scaled.points) > 1.5 * default, (len(scaled.points), default)
+    assert len(scaled.points) > 0.5 * _points_or_none(paths, cams)
+    assert np.median(relative_depth_error(scene, scaled.points)) < 0.01
+
+
 def test_cache_is_reused_and_invalidated_by_a_changed_photo(photographed, tmp_path, monkeypatch):
     scene, paths = photographed
     cams = scene.cameras[list(range(VIEWS))]
@@ -263,6 +291,31 @@ def test_trainer_starts_from_triangulated_points_when_the_scene_has_none(photogr
 
     off = replace(config, model=replace(config.model, triangulate=False)).setup(scene=posed_only)
     assert off.random_init and len(calls) == 1
+
+
+def test_a_trainer_on_hazed_photos_triangulates_at_their_contrast(photographed, tmp_path, monkeypatch):
+    from metegs.engine.config import TrainConfig
+
+    scene, paths = photographed
+    hazed = []
+    for path, image in zip(paths, scene.images):
+        hazed.append(tmp_path / "hazed" / path.name)
+        save_image(hazed[-1], 0.3 * torch.as_tensor(image) + 0.6)
+    seen = []
+
+    def fake(image_paths, cameras, cache_dir, opts=None):
+        seen.append(opts)
+        points = np.random.default_rng(0).normal(size=(500, 3)).astype(np.float32)
+        return tri.TriangulatedPoints(points, np.full_like(points, 0.5), len(image_paths), 0.5, cache=None)
+
+    monkeypatch.setattr(tri, "triangulate_known_poses", fake)
+    config = TrainConfig(max_steps=1, progress=False, output_dir=tmp_path / "runs")
+    config.setup(scene=subset(scene, paths, source=tmp_path / "clear"))
+    trainer = config.setup(scene=subset(scene, hazed, source=tmp_path / "hazed"))
+    clear_opts, hazed_opts = seen
+    assert clear_opts.peak_threshold == 0  # COLMAP's own
+    assert 0 < hazed_opts.peak_threshold < 0.5 * tri.SIFT_PEAK_THRESHOLD
+    assert "SIFT's contrast threshold" in trainer.decisions["init"] and "spans 0.20" in trainer.decisions["init"]
 
 
 @pytest.mark.parametrize("clean_supervision", [True, False])
