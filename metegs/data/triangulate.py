@@ -24,10 +24,9 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from metegs.cameras import Cameras
-from metegs.data.sfm import SfmOptions, _extract, _match, _pycolmap, _quiet
+from metegs.data.sfm import SfmOptions, _extract, _match, _pycolmap, _quiet, hazed_peak_threshold
 from metegs.files import atomic_write_bytes
 
 CACHE_DIR = ".metegs_points"
@@ -157,39 +156,10 @@ def _triangulate(image_paths: list[Path], cameras: Cameras, opts: SfmOptions) ->
     return TriangulatedPoints(points, colors, len(names), error)
 
 
-SIFT_PEAK_THRESHOLD = 0.02 / 3
-"""COLMAP's SIFT contrast threshold (its peak threshold over its 3 scales per octave)."""
-
-CLEAR_CONTRAST = 0.8
-"""The span of a clear photo's brightness between its 0.5 % and 99.5 % quantiles: 0.79-0.93 in the clean views of
-the Ethiopian head, the instant-ngp fox and the Lund street; their 200 m fog leaves 0.23-0.31 of it."""
-
-HAZY_CONTRAST = 0.5
-"""Photos whose brightness spans less than this are taken as hazed (fog, dense haze); dimmer clear scenes span
-0.6-0.8 (the built-in scene 0.65), heavy rain 0.66-0.82."""
-
-
-def photo_contrast(images: list[torch.Tensor]) -> float:
-    """Median over (up to 16 of) ``images`` ([H, W, 3] in [0, 1]) of the span of their luminance between its 0.5 %
-    and 99.5 % quantiles (every 4th pixel of each side)."""
-    step = max(1, len(images) // 16)
-    spans = []
-    for image in images[::step][:16]:
-        luma = (image[::4, ::4].float() @ torch.tensor([0.299, 0.587, 0.114])).flatten()
-        lo, hi = torch.quantile(luma, torch.tensor([0.005, 0.995]))
-        spans.append(float(hi - lo))
-    return float(np.median(spans))
-
-
 def contrast_options(contrast: float) -> SfmOptions:
-    """Triangulation's options for photos whose brightness spans ``contrast`` (`photo_contrast`): where that is
-    under `HAZY_CONTRAST`, SIFT's contrast threshold scaled by it against a clear photo's `CLEAR_CONTRAST` (at
-    least 0.2 of COLMAP's), as stretching the photos to a clear one's span would (SIFT's responses scale with the
-    contrast); else COLMAP's."""
-    if contrast >= HAZY_CONTRAST:
-        return SfmOptions(max_features=4096)
-    scale = max(0.2, contrast / CLEAR_CONTRAST)
-    return SfmOptions(max_features=4096, peak_threshold=SIFT_PEAK_THRESHOLD * scale)
+    """Triangulation's options for photos whose brightness spans ``contrast`` (`photo_contrast`): SIFT's contrast
+    threshold lowered where they are hazed (`hazed_peak_threshold`)."""
+    return SfmOptions(max_features=4096, peak_threshold=hazed_peak_threshold(contrast))
 
 
 def triangulate_known_poses(

@@ -334,14 +334,8 @@ class Trainer:
         if not mc.triangulate or photos is None:
             return None
         from metegs.config import scene_cache
-        from metegs.data.triangulate import (
-            CACHE_DIR,
-            CLEAR_CONTRAST,
-            SIFT_PEAK_THRESHOLD,
-            contrast_options,
-            photo_contrast,
-            triangulate_known_poses,
-        )
+        from metegs.data.sfm import CLEAR_CONTRAST, SIFT_PEAK_THRESHOLD, photo_contrast
+        from metegs.data.triangulate import CACHE_DIR, contrast_options, triangulate_known_poses
 
         views = self.dataset.train_indices
         source = self.scene.source

@@ -251,3 +251,31 @@ def test_mapping_that_registers_enough_photos_is_not_repeated(four_photos, tmp_p
     result = run_sfm(four_photos, tmp_path / "out", opts, masks=SCENE / "masks_8")
     assert len(result.registered) >= sfm.RETRY_BELOW * 4 and not dropped
     assert (result.initial_pair, result.focal_prior) == ("default", "exif")
+
+
+@pytest.mark.parametrize("hazed", [False, True])
+def test_hazed_photos_are_matched_at_a_lower_contrast_threshold(tmp_path, monkeypatch, hazed):
+    """Fog leaves a third of a photo's contrast, and SIFT's threshold is absolute: SfM lowers it for hazed photos
+    and keeps COLMAP's for clear ones (the triangulation tests show what it finds)."""
+    import metegs.data.sfm as sfm
+    from metegs.data.images import save_image
+
+    photos = tmp_path / "photos"
+    rng = np.random.default_rng(0)
+    for i in range(3):
+        image = rng.random((48, 64, 3)).astype(np.float32)
+        save_image(photos / f"{i}.png", 0.3 * image + 0.6 if hazed else image)
+    seen = []
+
+    def stop(pycolmap, db, images, names, masks, opts, progress):
+        seen.append(opts.peak_threshold)
+        raise RuntimeError("stopped after the options were set")
+
+    monkeypatch.setattr(sfm, "_extract", stop)
+    with pytest.raises(RuntimeError, match="stopped after"):
+        run_sfm(photos, tmp_path / "out")
+    assert (0 < seen[0] < 0.5 * sfm.SIFT_PEAK_THRESHOLD) if hazed else seen[0] == 0
+    assert not (tmp_path / "out").exists()
+    with pytest.raises(RuntimeError, match="stopped after"):
+        run_sfm(photos, tmp_path / "out", SfmOptions(peak_threshold=0.004))
+    assert seen[-1] == 0.004  # an explicit threshold is the user's

@@ -14,6 +14,7 @@ import metegs.data.triangulate as tri
 from metegs.data.config import DatasetConfig, SyntheticSceneConfig
 from metegs.data.images import save_image
 from metegs.data.parsers.base import parse_scene
+from metegs.data.sfm import SIFT_PEAK_THRESHOLD, photo_contrast
 from metegs.data.triangulate import MIN_POINTS, triangulate_known_poses
 
 VIEWS = 12
@@ -95,13 +96,13 @@ def test_hazed_photos_lower_sifts_contrast_threshold_and_keep_their_points(photo
     scene, paths = photographed
     cams = scene.cameras[list(range(VIEWS))]
     clear = [torch.as_tensor(scene.images[i]) for i in range(VIEWS)]
-    assert tri.contrast_options(tri.photo_contrast(clear)).peak_threshold == 0  # COLMAP's own for clear photos
+    assert tri.contrast_options(photo_contrast(clear)).peak_threshold == 0  # COLMAP's own for clear photos
     hazed = [0.3 * image + 0.6 for image in clear]
     hazed_paths = [tmp_path / p.name for p in paths]
     for path, image in zip(hazed_paths, hazed):
         save_image(path, image)
-    opts = tri.contrast_options(tri.photo_contrast(hazed))
-    assert 0 < opts.peak_threshold < 0.5 * tri.SIFT_PEAK_THRESHOLD
+    opts = tri.contrast_options(photo_contrast(hazed))
+    assert 0 < opts.peak_threshold < 0.5 * SIFT_PEAK_THRESHOLD
     default = _points_or_none(hazed_paths, cams)
     scaled = triangulate_known_poses(hazed_paths, cams, None, opts)
     assert len(scaled.points) > 1.5 * default, (len(scaled.points), default)
@@ -314,7 +315,7 @@ def test_a_trainer_on_hazed_photos_triangulates_at_their_contrast(photographed, 
     trainer = config.setup(scene=subset(scene, hazed, source=tmp_path / "hazed"))
     clear_opts, hazed_opts = seen
     assert clear_opts.peak_threshold == 0  # COLMAP's own
-    assert 0 < hazed_opts.peak_threshold < 0.5 * tri.SIFT_PEAK_THRESHOLD
+    assert 0 < hazed_opts.peak_threshold < 0.5 * SIFT_PEAK_THRESHOLD
     assert "SIFT's contrast threshold" in trainer.decisions["init"] and "spans 0.20" in trainer.decisions["init"]
 
 
