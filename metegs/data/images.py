@@ -15,6 +15,9 @@ import numpy as np
 
 from metegs.errors import DataError
 
+LUMA = (0.299, 0.587, 0.114)
+"""Rec. 601 weights of R, G and B in a photo's luma."""
+
 IMAGE_EXTENSIONS = frozenset({".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".exr"})
 """File suffixes (lower case) treated as images when listing a folder."""
 

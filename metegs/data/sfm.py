@@ -21,7 +21,7 @@ from typing import Literal
 import cv2
 import numpy as np
 
-from metegs.data.images import load_image, load_mask, read_image_bytes
+from metegs.data.images import LUMA, load_image, load_mask, read_image_bytes
 from metegs.errors import ConfigError, DataError
 from metegs.files import staged_output
 
@@ -100,9 +100,6 @@ the Ethiopian head, the instant-ngp fox and the Lund street; their 200 m fog lea
 HAZY_CONTRAST = 0.5
 """Photos whose brightness spans less than this are taken as hazed (fog, dense haze); dimmer clear scenes span
 0.6-0.8 (the built-in scene 0.65), heavy rain 0.66-0.82."""
-
-LUMA = (0.299, 0.587, 0.114)
-"""Rec. 601 luminance weights of R, G, B."""
 
 
 def photo_contrast(images) -> float:

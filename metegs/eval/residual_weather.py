@@ -17,7 +17,8 @@ from functools import lru_cache
 import torch
 import torch.nn.functional as F
 
-LUMA = (0.299, 0.587, 0.114)
+from metegs.data.images import LUMA
+
 ANGLES = 12
 """Orientations of the line filters (every 15°)."""
 SMOOTH_LEVEL = 0.01

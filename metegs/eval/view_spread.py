@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import torch
 
 from metegs.cameras import Cameras
+from metegs.data.images import LUMA
 
 EVEN_SPREAD_RATIO = 1.2
 """`ViewSpread.ratio` up to which the photos spread about a point's median as evenly as clear photos do (0.8-1.1 on
@@ -29,9 +30,6 @@ the real captures) or dense rain's (0.7-1.3): the rain brightens most of a point
 
 SPARSE_STREAKS_RATIO = 2.0
 """`ViewSpread.ratio` from which streaks reach too few of a point's views to brighten its median."""
-
-LUMA = (0.299, 0.587, 0.114)
-"""Rec. 601 weights of R, G and B in a photo's luma."""
 
 
 @dataclass(frozen=True)
