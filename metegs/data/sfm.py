@@ -16,7 +16,7 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import cv2
 import numpy as np
@@ -24,6 +24,7 @@ import numpy as np
 from metegs.data.images import LUMA, load_image, load_mask, read_image_bytes
 from metegs.errors import ConfigError, DataError
 from metegs.files import staged_output
+from metegs.validate import NON_NEGATIVE, check_config
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp")
 """File types taken from the photo folder (case-insensitive)."""
@@ -42,7 +43,7 @@ class SfmOptions:
     """Longest side (px) at which features are extracted; 0 keeps the photos' size."""
     max_features: int = 8192
     """SIFT features kept per photo."""
-    peak_threshold: float = 0.0
+    peak_threshold: Annotated[float, NON_NEGATIVE] = 0.0
     """SIFT's contrast threshold on the difference of Gaussians; 0: COLMAP's 0.02/3, lowered for hazed photos
     (brightness spanning under 0.5 between its 0.5 % and 99.5 % quantiles) by their span over a clear photo's 0.8."""
     accurate_features: bool = False
@@ -330,6 +331,7 @@ def run_sfm(
     keep SfM on an object that turns on a turntable in front of a static background.
     """
     opts = opts or SfmOptions()
+    check_config(opts)
     progress = progress or (lambda stage, done, total: None)
     pycolmap = _pycolmap()
     _quiet(pycolmap)
@@ -340,7 +342,7 @@ def run_sfm(
     if output.exists() and not overwrite:
         raise ConfigError(f"{output} exists; choose another output folder or pass --overwrite")
     names = list_photos(images)
-    if opts.peak_threshold <= 0:  # hazed photos: as many features as their contrast allows (recorded in the options)
+    if opts.peak_threshold == 0:  # hazed photos: as many features as their contrast allows (recorded in the options)
         sample = names[:: max(1, len(names) // 16)][:16]
         opts = replace(
             opts, peak_threshold=hazed_peak_threshold(photo_contrast([load_image(images / n) for n in sample]))

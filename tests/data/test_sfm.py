@@ -279,3 +279,9 @@ def test_hazed_photos_are_matched_at_a_lower_contrast_threshold(tmp_path, monkey
     with pytest.raises(RuntimeError, match="stopped after"):
         run_sfm(photos, tmp_path / "out", SfmOptions(peak_threshold=0.004))
     assert seen[-1] == 0.004  # an explicit threshold is the user's
+
+
+def test_a_negative_contrast_threshold_is_a_clear_error(tmp_path):
+    with pytest.raises(ConfigError, match="peak-threshold"):
+        run_sfm(tmp_path / "photos", tmp_path / "out", SfmOptions(peak_threshold=-0.001))
+    assert not (tmp_path / "out").exists()
