@@ -35,6 +35,9 @@ CACHE_DIR = ".metegs_points"
 MIN_POINTS = 100
 """Fewer triangulated points than this is treated as a failure (the caller falls back to random points)."""
 
+MAX_FEATURES = 4096
+"""SIFT features per photo that triangulation extracts (at up to 1600 px, as metegs-process-images)."""
+
 
 @dataclass
 class TriangulatedPoints:
@@ -159,7 +162,7 @@ def _triangulate(image_paths: list[Path], cameras: Cameras, opts: SfmOptions) ->
 def contrast_options(contrast: float) -> SfmOptions:
     """Triangulation's options for photos whose brightness spans ``contrast`` (`photo_contrast`): SIFT's contrast
     threshold lowered where they are hazed (`hazed_peak_threshold`)."""
-    return SfmOptions(max_features=4096, peak_threshold=hazed_peak_threshold(contrast))
+    return SfmOptions(max_features=MAX_FEATURES, peak_threshold=hazed_peak_threshold(contrast))
 
 
 def triangulate_known_poses(
@@ -174,7 +177,7 @@ def triangulate_known_poses(
     pipeline of the module docstring and caches it there (``cache_dir`` None: no cache). Raises
     ``RuntimeError`` when fewer than `MIN_POINTS` points could be triangulated (a failure is cached too).
     """
-    opts = opts or SfmOptions(max_features=4096)  # features at up to 1600 px, as metegs-process-images
+    opts = opts or SfmOptions(max_features=MAX_FEATURES)
     if len(image_paths) != len(cameras):
         raise ValueError(f"{len(image_paths)} photos but {len(cameras)} cameras")
     pycolmap = _pycolmap()
