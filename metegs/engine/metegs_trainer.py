@@ -640,7 +640,7 @@ class MeteGSTrainer(Trainer):
             return False, "the Gaussians start from random points, so how far apart the views see the scene is unknown"
         if self.swept_init:  # the fox under rain + fog, blind: 14.86 dB with β free, 18.30 with the prior
             return False, (
-                "the Gaussians start from a plane sweep of photos that the weather took SIFT's features from; as from "
+                "the Gaussians start from a plane sweep of the photos, coarser than triangulated points; as from "
                 "random points, how far apart the views see the scene is left unmeasured"
             )
         spread = distance_spread(self.dataset.cameras[self.dataset.train_indices], self.model.means.detach())

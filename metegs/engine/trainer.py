@@ -341,6 +341,8 @@ class Trainer:
         source = self.scene.source
         folder = None if source is None else (source if source.is_dir() else source.parent)
         cache = None if folder is None else scene_cache(folder, CACHE_DIR, "points")
+        if mc.sweep_init:
+            return self._swept_points(images, photos, whose, cache, "asked for: --model.sweep-init")
         try:
             import pycolmap  # noqa: F401 - triangulation's one dependency that a trimmed install may lack
         except ImportError:
@@ -371,8 +373,9 @@ class Trainer:
         self, images: list[torch.Tensor], paths: list[Path], whose: str, cache: Path | None, failure: str
     ) -> tuple[np.ndarray, np.ndarray] | None:
         """Points of a plane sweep of the training views of ``images`` (one per view, read from ``paths``;
-        `data.plane_sweep`) where triangulation cannot give them (``failure`` says why: rain streaks and drops take
-        SIFT's features, a plane sweep needs none; or no pycolmap). None: random initialisation."""
+        `data.plane_sweep`) where triangulation cannot give them or the config asks for them (``failure`` says why:
+        rain streaks and drops take SIFT's features, a plane sweep needs none; no pycolmap; ``sweep_init``). None:
+        random initialisation."""
         from metegs.data.plane_sweep import sweep_known_poses
 
         views = self.dataset.train_indices

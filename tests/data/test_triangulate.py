@@ -428,3 +428,24 @@ def test_resuming_or_reopening_a_run_does_not_triangulate_again(photographed, tm
     save_ply(trainer.model, tmp_path / "scene.ply")
     reopened = config.setup(scene=posed_only, model=load_ply(tmp_path / "scene.ply"))
     assert len(calls) == 1 and len(reopened.model) == len(trainer.model)
+
+
+def test_a_trainer_asked_to_sweep_does_not_triangulate(photographed, tmp_path, monkeypatch):
+    """`--model.sweep-init` starts a poses-only capture from the plane sweep's points where triangulation would work,
+    says so, and reads them as swept points (the views' spread unmeasured)."""
+    from metegs.engine.config import TrainConfig
+
+    scene, paths = photographed
+
+    def unasked(*args, **kwargs):
+        raise AssertionError("triangulated although the sweep was asked for")
+
+    monkeypatch.setattr(tri, "triangulate_known_poses", unasked)
+    config = TrainConfig(max_steps=1, progress=False, output_dir=tmp_path / "runs")
+    config = replace(config, model=replace(config.model, sweep_init=True, init_random_points=3000))
+    trainer = config.setup(scene=subset(scene, paths, source=tmp_path))
+    assert not trainer.random_init and trainer.swept_init
+    assert "plane sweep" in trainer.decisions["init"] and "--model.sweep-init" in trainer.decisions["init"]
+    assert 1000 <= len(trainer.model) <= 3000
+    err = relative_depth_error(scene, trainer.model.means.detach().numpy())
+    assert np.median(err) < 0.02, np.median(err)
