@@ -42,8 +42,9 @@ class ModelConfig:
     (rain streaks take the features) sweep depth planes through the views, instead of starting from random
     Gaussians."""
     sweep_init: bool = False
-    """Start such a capture from the plane sweep even where triangulation works: its denser points pay where SIFT's
-    are sparse (the Ethiopian head's 3049: 3DGS +1.15 dB) and can cost under fog (the fox, blind: −0.7 dB)."""
+    """Start a capture with poses but no points from the plane sweep even where triangulation works: its denser
+    points pay where SIFT's are sparse (the Ethiopian head's 3049: 3DGS +1.15 dB), and can cost under fog (the fox,
+    blind: −0.7 dB)."""
 
 
 @dataclass

@@ -324,7 +324,8 @@ class Trainer:
     @functools.cached_property
     def initial_points(self) -> tuple[np.ndarray, np.ndarray] | None:
         """([P, 3] points, [P, 3] colours) the Gaussians start from: the scene's, else triangulated from the
-        training views' known poses (``model.triangulate``); None means random initialisation."""
+        training views' known poses (``model.triangulate``), or swept where that fails or ``model.sweep_init``
+        asks; None means random initialisation."""
         mc = self.config.model
         if mc.random_init:
             return None
