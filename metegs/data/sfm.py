@@ -13,10 +13,10 @@ from __future__ import annotations
 import json
 import shutil
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Literal, TypeVar
 
 import cv2
 import numpy as np
@@ -103,12 +103,22 @@ HAZY_CONTRAST = 0.5
 0.6-0.8 (the built-in scene 0.65), heavy rain 0.66-0.82."""
 
 
+T = TypeVar("T")
+
+CONTRAST_SAMPLE = 16
+"""The most photos `photo_contrast` reads, evenly spread over a capture (`contrast_sample`)."""
+
+
+def contrast_sample(items: Sequence[T]) -> Sequence[T]:
+    """Up to `CONTRAST_SAMPLE` of ``items``, evenly spread over them: the photos `photo_contrast` reads."""
+    return items[:: max(1, len(items) // CONTRAST_SAMPLE)][:CONTRAST_SAMPLE]
+
+
 def photo_contrast(images) -> float:
-    """Median over (up to 16 of) ``images`` ([H, W, 3] arrays or tensors in [0, 1]) of the span of their luminance
-    between its 0.5 % and 99.5 % quantiles (every 4th pixel of each side)."""
-    step = max(1, len(images) // 16)
+    """Median over ``images`` ([H, W, 3] arrays or tensors in [0, 1]; `contrast_sample` of them) of the span of their
+    luminance between its 0.5 % and 99.5 % quantiles (every 4th pixel of each side)."""
     spans = []
-    for image in images[::step][:16]:
+    for image in contrast_sample(images):
         if hasattr(image, "detach"):  # a tensor, maybe on the GPU
             image = image[::4, ::4].detach().cpu().numpy()
         else:
@@ -343,10 +353,8 @@ def run_sfm(
         raise ConfigError(f"{output} exists; choose another output folder or pass --overwrite")
     names = list_photos(images)
     if opts.peak_threshold == 0:  # hazed photos: as many features as their contrast allows (recorded in the options)
-        sample = names[:: max(1, len(names) // 16)][:16]
-        opts = replace(
-            opts, peak_threshold=hazed_peak_threshold(photo_contrast([load_image(images / n) for n in sample]))
-        )
+        sample = [load_image(images / n) for n in contrast_sample(names)]
+        opts = replace(opts, peak_threshold=hazed_peak_threshold(photo_contrast(sample)))
     timings: dict[str, float] = {}
     with staged_output(output, overwrite=overwrite) as tmp:
         staged_images = tmp / "images"
