@@ -517,9 +517,10 @@ class MeteGSTrainer(Trainer):
     def _decide_record_prior(self, name: str, fog: FogAnalytic) -> None:
         """What sets ``fog``'s β where the photometric fit alone cannot: ``auto`` asks if the views see the scene's
         (initial) points over distances far enough apart for the photos to measure β
-        (`MEASURABLE_DISTANCE_SPREAD`; unknown, so not, from random or swept points); where they are not, or the fog
-        alone is dense and the points do not measure it, blind training holds it by the dark-channel prior
-        (`_decide_dark_channel`), training with clean references (or with that prior off) near the met record's. Blind
+        (`MEASURABLE_DISTANCE_SPREAD`; unknown, so not, from random points or a sweep where triangulation failed);
+        where they are not, or the fog alone is dense and the points do not measure it, blind training holds it by the
+        dark-channel prior (`_decide_dark_channel`), training with clean references (or with that prior off) near the
+        met record's. Blind
         under rain heavier than light through dense fog the record holds it wherever the views are
         (`_rain_through_dense_fog`). Elsewhere blind, where they are, the photos' colours at the starting points
         measure it (`_measured_medium`), and where that measure explains enough of them (`MIN_MEDIUM_EXPLAINED`) the
@@ -634,22 +635,31 @@ class MeteGSTrainer(Trainer):
 
     @functools.cached_property
     def _views_measure_medium(self) -> tuple[bool, str]:
-        """Whether the views see the Gaussians' starting points from distances far enough apart
+        """Whether the views see the scene's points (`_geometry_points`) from distances far enough apart
         (`MEASURABLE_DISTANCE_SPREAD`) for the photos to measure a medium, and what they see in words."""
         if self.random_init:  # random points fill the views' overlap and say nothing of where the scene lies
             return False, "the Gaussians start from random points, so how far apart the views see the scene is unknown"
-        if self.swept_init:  # the fox under rain + fog, blind: 14.86 dB with β free, 18.30 with the prior
-            return False, (
+        if self.swept_init and self.triangulated_points is None:  # the fox under rain + fog, blind: 14.86 dB
+            return False, (  # with β free, 18.30 with the prior
                 "the Gaussians start from a plane sweep of the photos, coarser than triangulated points; as from "
                 "random points, how far apart the views see the scene is left unmeasured"
             )
-        spread = distance_spread(self.dataset.cameras[self.dataset.train_indices], self.model.means.detach())
+        spread = distance_spread(self.dataset.cameras[self.dataset.train_indices], self._geometry_points)
         if spread is None:
             return False, "the views see a scene point from distances (unknown) apart (median)"
         seen = f"the views see a scene point from distances {spread:.2f}x apart (median)"
         if spread < MEASURABLE_DISTANCE_SPREAD:
             return False, f"{seen}, under {MEASURABLE_DISTANCE_SPREAD}x"
         return True, seen
+
+    @property
+    def _geometry_points(self) -> torch.Tensor:
+        """[P, 3] the points that the medium's measures read the scene's geometry at: the Gaussians' starting means,
+        or the points triangulated beside the sweep they start from (`Trainer.triangulated_points`), finer than its
+        planes."""
+        if self.triangulated_points is not None:
+            return torch.as_tensor(self.triangulated_points, dtype=torch.float32, device=self.device)
+        return self.model.means.detach()
 
     def _held_measure(self) -> MediumFit | None:
         """Blind, where the record gives a visibility, the photos' measure at the scene's points (`_measured_medium`)
@@ -672,8 +682,8 @@ class MeteGSTrainer(Trainer):
 
     @functools.cached_property
     def _medium_observations(self) -> PointObservations | None:
-        """The training photos' colours at the Gaussians' starting points seen from distances
-        `MEASURABLE_DISTANCE_SPREAD` times apart, in the views that no other starting point hides them from
+        """The training photos' colours at the scene's points (`_geometry_points`) seen from distances
+        `MEASURABLE_DISTANCE_SPREAD` times apart, in the views that no other such point hides them from
         (`point_observations`), or None where fewer than `MIN_MEASURED_POINTS` points are."""
         from metegs.weather.conditions import scene_metres_per_unit
 
@@ -683,7 +693,7 @@ class MeteGSTrainer(Trainer):
             obs = point_observations(
                 ds.cameras[views],
                 [ds.images[i] for i in views],
-                self.model.means.detach(),
+                self._geometry_points,
                 torch.as_tensor(self.scene.up),
                 scene_metres_per_unit(self.config.conditions, self.scene.metric_scale),
                 max_points=MEASURED_POINTS,

@@ -11,6 +11,7 @@ import time
 from dataclasses import dataclass, replace
 from datetime import datetime
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -42,6 +43,9 @@ from metegs.models.exposure import ViewExposure, nearest_training_rows
 from metegs.render import RenderOutput, RenderSettings, make_rasterizer
 from metegs.render.cpu_backend import thread_split, thread_split_counts
 from metegs.render.select import resolve_backend
+
+if TYPE_CHECKING:
+    from metegs.data.triangulate import TriangulatedPoints
 
 
 def resolve_device(name: str) -> torch.device:
@@ -146,7 +150,10 @@ class Trainer:
         self.extent = scene_extent(self.dataset.cameras[self.dataset.train_indices])
         self._random_init: bool | None = None
         self.swept_init = False
-        """True when the Gaussians start from a plane sweep's points (`_swept_points`)."""
+        """True when the Gaussians start from a plane sweep's points (`initial_points`)."""
+        self.triangulated_points: np.ndarray | None = None
+        """[P, 3] points triangulated from the training views where the Gaussians start from the sweep
+        (``model.sweep_init``) and triangulation works too: where the weather models measure the scene's geometry."""
         self.resumed_from: Path | None = None
         """The checkpoint file this run continues (``load_checkpoint``), else None."""
         ckpt = None
@@ -159,6 +166,8 @@ class Trainer:
             if "random_init" in ckpt:  # older checkpoints: found again from the scene (cached triangulation)
                 self._random_init = bool(ckpt["random_init"])
             self.swept_init = bool(ckpt.get("swept_init", False))
+            if (measured := ckpt.get("triangulated_points")) is not None:
+                self.triangulated_points = measured.cpu().numpy()
         elif model is not None:
             self.model = model.to(self.device)
             self._random_init = False
@@ -323,65 +332,98 @@ class Trainer:
 
     @functools.cached_property
     def initial_points(self) -> tuple[np.ndarray, np.ndarray] | None:
-        """([P, 3] points, [P, 3] colours) the Gaussians start from: the scene's, else triangulated from the
-        training views' known poses (``model.triangulate``), or swept where that fails or ``model.sweep_init``
-        asks; None means random initialisation."""
+        """([P, 3] points, [P, 3] colours) the Gaussians start from: the scene's, else (photos and poses but no
+        points) a plane sweep of the training views (``model.sweep_init``), beside which the points triangulated at
+        their known poses (``model.triangulate``) measure the scene's geometry (`triangulated_points`); either alone
+        where the other is off or finds too few; None means random initialisation."""
         mc = self.config.model
         if mc.random_init:
+            self.decide("init", "random Gaussians: --model.random-init")
             return None
         if self.scene.points is not None and len(self.scene.points) > 0:
             return self.scene.points, self.scene.point_colors
         photos, images, whose = self._triangulation_photos()
-        if not mc.triangulate or photos is None:
+        if photos is None:
+            return None
+        if not mc.triangulate and not mc.sweep_init:
+            self.decide("init", "random Gaussians: --model.no-triangulate --model.no-sweep-init")
             return None
         from metegs.config import scene_cache
-        from metegs.data.sfm import CLEAR_CONTRAST, SIFT_PEAK_THRESHOLD, photo_contrast
-        from metegs.data.triangulate import CACHE_DIR, contrast_options, triangulate_known_poses
+        from metegs.data.triangulate import CACHE_DIR
 
-        views = self.dataset.train_indices
         source = self.scene.source
         folder = None if source is None else (source if source.is_dir() else source.parent)
         cache = None if folder is None else scene_cache(folder, CACHE_DIR, "points")
-        if mc.sweep_init:
-            return self._swept_points(images, photos, whose, cache, "asked for: --model.sweep-init")
+        found, found_text = (
+            self._triangulated(images, photos, whose, cache) if mc.triangulate else (None, "--model.no-triangulate")
+        )
+        if found is not None and not mc.sweep_init:
+            self.decide("init", found_text)
+            return found.points, found.colors
+        swept, swept_text = self._swept(images, photos, whose, cache)
+        if swept is None and found is not None:
+            self.decide("init", f"{found_text}; the plane sweep found too few: {swept_text}")
+            return found.points, found.colors
+        if swept is None:
+            self.decide("init", f"random Gaussians: {found_text}; {swept_text}", warn=found_text.startswith("pycolmap"))
+            return None
+        self.swept_init = True
+        why = found_text
+        if found is not None:
+            self.triangulated_points = found.points
+            why = (
+                f"the start of captures without points; the {len(found.points)} points triangulated from them measure "
+                "the scene's geometry, --model.no-sweep-init starts from those"
+            )
+        self.decide(
+            "init",
+            f"{len(swept.points)} points from a plane sweep of {swept.num_views} training views' {whose} at their "
+            f"known poses ({why}; cache {swept.cache})",
+        )
+        return swept.points, swept.colors
+
+    def _triangulated(
+        self, images: list[torch.Tensor], paths: list[Path], whose: str, cache: Path | None
+    ) -> tuple[TriangulatedPoints | None, str]:
+        """(points triangulated from the training views of ``images`` (one per view, read from ``paths``) at their
+        known poses, or None; what they are, or why there are none: rain streaks and drops take SIFT's features, no
+        pycolmap)."""
+        from metegs.data.sfm import CLEAR_CONTRAST, SIFT_PEAK_THRESHOLD, photo_contrast
+        from metegs.data.triangulate import contrast_options, triangulate_known_poses
+
         try:
             import pycolmap  # noqa: F401 - triangulation's one dependency that a trimmed install may lack
         except ImportError:
-            why = "pycolmap is not installed to triangulate points from the views (pip install pycolmap)"
-            return self._swept_points(images, photos, whose, cache, why)
+            return None, "pycolmap is not installed to triangulate points from the views (pip install pycolmap)"
+        views = self.dataset.train_indices
         contrast = photo_contrast([images[i] for i in views])
         opts = contrast_options(contrast)
         try:
             with self.status(f"triangulating points from {len(views)} training views' {whose} (pycolmap)"):
-                found = triangulate_known_poses([photos[i] for i in views], self.scene.cameras[views], cache, opts)
+                found = triangulate_known_poses([paths[i] for i in views], self.scene.cameras[views], cache, opts)
         except (RuntimeError, ValueError, OSError) as exc:
-            why = f"triangulation failed: {exc}"
-            return self._swept_points(images, photos, whose, cache, why)
-        self.decide(
-            "init",
-            f"{len(found.points)} points triangulated from {found.num_views} training views' {whose} at their known poses "
-            f"(mean reprojection error {found.reprojection_error_px:.2f} px; cache {found.cache})"
+            return None, f"triangulation failed: {exc}"
+        return found, (
+            f"{len(found.points)} points triangulated from {found.num_views} training views' {whose} at their known "
+            f"poses (mean reprojection error {found.reprojection_error_px:.2f} px; cache {found.cache})"
             + (
                 f"; SIFT's contrast threshold {opts.peak_threshold:.2g}, COLMAP's times {opts.peak_threshold / SIFT_PEAK_THRESHOLD:.2f}: "
                 f"the photos' brightness spans {contrast:.2f}, a clear photo's about {CLEAR_CONTRAST:g}"
                 if opts.peak_threshold > 0
                 else ""
-            ),
+            )
         )
-        return found.points, found.colors
 
-    def _swept_points(
-        self, images: list[torch.Tensor], paths: list[Path], whose: str, cache: Path | None, failure: str
-    ) -> tuple[np.ndarray, np.ndarray] | None:
-        """Points of a plane sweep of the training views of ``images`` (one per view, read from ``paths``;
-        `data.plane_sweep`) where triangulation cannot give them or the config asks for them (``failure`` says why:
-        rain streaks and drops take SIFT's features, a plane sweep needs none; no pycolmap; ``sweep_init``). None:
-        random initialisation."""
+    def _swept(
+        self, images: list[torch.Tensor], paths: list[Path], whose: str, cache: Path | None
+    ) -> tuple[TriangulatedPoints | None, str]:
+        """(points of a plane sweep of the training views of ``images`` (one per view, read from ``paths``;
+        `data.plane_sweep`), or None; why there are none)."""
         from metegs.data.plane_sweep import sweep_known_poses
 
         views = self.dataset.train_indices
         try:
-            with self.status(f"sweeping depths in {len(views)} training views' {whose} ({failure[:60]})"):
+            with self.status(f"sweeping depths in {len(views)} training views' {whose}"):
                 found = sweep_known_poses(
                     [images[i] for i in views],
                     [paths[i] for i in views],
@@ -391,15 +433,8 @@ class Trainer:
                     seed=self.config.seed,
                 )
         except (RuntimeError, ValueError, OSError) as exc:
-            self.decide("init", f"random Gaussians: {failure}; {exc}", warn=failure.startswith("pycolmap"))
-            return None
-        self.swept_init = True
-        self.decide(
-            "init",
-            f"{len(found.points)} points from a plane sweep of {found.num_views} training views' {whose} at their "
-            f"known poses ({failure}; cache {found.cache})",
-        )
-        return found.points, found.colors
+            return None, str(exc)
+        return found, ""
 
     def _triangulation_photos(self) -> tuple[list[Path] | None, list[torch.Tensor], str]:
         """(the image files, one per view, that `initial_points` triangulates from, or None; the same images as
@@ -786,6 +821,9 @@ class Trainer:
             "train_seconds": self.train_seconds,
             "random_init": self.random_init,
             "swept_init": self.swept_init,
+            "triangulated_points": None
+            if self.triangulated_points is None
+            else torch.as_tensor(self.triangulated_points, dtype=torch.float32),
             "metegs_version": __version__,
             "method": self.config.method,
             "scene": self.scene_signature(),
