@@ -38,13 +38,13 @@ class ModelConfig:
     """Ignore the scene's points and start from random Gaussians."""
     triangulate: bool = True
     """When the scene has photo files and poses but no points (LLFF, nerfstudio, Blender), triangulate SfM
-    points from the training views with pycolmap (known poses; cached in the scene folder): the start, or with
-    `sweep-init` where the weather models measure the scene's geometry."""
+    points from the training views with pycolmap (known poses; cached in the scene folder): where the weather
+    models measure the scene's geometry, and the start with --model.no-sweep-init."""
     sweep_init: bool = True
-    """Start a capture with poses but no points from a plane sweep of the training views (cached), whose points are
-    coarser than triangulated ones but denser (the Ethiopian head: 20000 against SIFT's 3049, 3DGS +1.15 dB);
-    off, from the triangulated points, and from the sweep only where triangulation fails (rain streaks take
-    SIFT's features). Neither: random Gaussians."""
+    """Start a capture with poses but no points from a plane sweep of the training views (cached): coarser points
+    than triangulated ones, but more (the Ethiopian head: 20000 against SIFT's 3049, 3DGS +1.15 dB). Off: from the
+    triangulated points, and from the sweep only where triangulation fails (rain streaks take SIFT's features);
+    off with --model.no-triangulate: from random Gaussians."""
 
 
 @dataclass
