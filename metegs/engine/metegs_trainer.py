@@ -520,8 +520,7 @@ class MeteGSTrainer(Trainer):
         (`MEASURABLE_DISTANCE_SPREAD`; unknown, so not, from random points or a sweep where triangulation failed);
         where they are not, or the fog alone is dense and the points do not measure it, blind training holds it by the
         dark-channel prior (`_decide_dark_channel`), training with clean references (or with that prior off) near the
-        met record's. Blind
-        under rain heavier than light through dense fog the record holds it wherever the views are
+        met record's. Blind under rain heavier than light through dense fog the record holds it wherever the views are
         (`_rain_through_dense_fog`). Elsewhere blind, where they are, the photos' colours at the starting points
         measure it (`_measured_medium`), and where that measure explains enough of them (`MIN_MEDIUM_EXPLAINED`) the
         prior holds it there: left free, it drifts while the Gaussians take the haze in (the fox in metegs's own 200 m

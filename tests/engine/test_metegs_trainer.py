@@ -483,6 +483,7 @@ def test_extra_points_compensate_sfm_points_only(tmp_path):
         tmp_path / "b", max_steps=2, model=replace(from_points.config.model, random_init=True)
     ).setup()
     assert at_random.random_init and at_random.extra_points is None
+    assert at_random.decisions["init"] == "random Gaussians: --model.random-init"
     assert at_random.decisions["extra points"].startswith("off: the Gaussians started from random points")
 
 
