@@ -4,8 +4,9 @@ Writes into .gpu/ (ignored by git; carry it with the run): the Ethiopian head (L
 here) and the Lund street (COLMAP) as nerfstudio ``transforms.json`` scenes with their own train/test split, the fox
 and Lund at half their size (the training size is the same: both train at their power-of-two downscale under 640 px),
 each world turned so that metegs's own up estimate is +Z, sparse points triangulated here where the capture has none
-(the GPU runs start from them, as CPU runs with ``--model.no-sweep-init`` do: without pycolmap a run that starts from
-the plane sweep has no triangulated points to measure the weather at), the two met records, and ``real-gpu.yaml``:
+(every GPU run starts from them, the clean photos' points in every condition, where a CPU run triangulates from the
+photos it trains on and starts from a plane sweep of them: without pycolmap a GPU run would have no triangulated points
+to measure the weather at), the two met records, and ``real-gpu.yaml``:
 real.yaml's grid on CUDA without the rows the GPU image cannot run (the 2D restoration needs OpenCV's contrib module),
 plus two ablations of blind MeteGS (without the dark-channel prior; densification stopped at 20 % of the run) and
 3DGS's and blind MeteGS's rows also with seeds 1 and 2 (``seeds``: rows ``-seed1``, ``-seed2``).
