@@ -201,6 +201,27 @@ def plane_sweep_points(
     return points.numpy().astype(np.float32), colours.numpy().astype(np.float32)
 
 
+COVERAGE_CELLS = 32
+"""Cells along a view's longer side in `view_coverage` (the sweep's own scale: 160 px in cells of 5 px)."""
+
+
+def view_coverage(points: np.ndarray, cameras: Cameras, cells: int = COVERAGE_CELLS) -> float:
+    """Mean over the views of ``cameras`` of the share of cells (``cells`` along the longer side) that hold at least
+    one of ``points`` [P, 3] in front of the camera: how much of each view a start from those points leaves empty.
+    -> float in [0, 1]."""
+    pts = torch.as_tensor(points, dtype=torch.float32)
+    shares = []
+    for view in range(len(cameras)):
+        w, h = int(cameras.width[view]), int(cameras.height[view])
+        uv, z = _project(pts, cameras, view)
+        size = max(w, h) / cells
+        cw, ch = math.ceil(w / size), math.ceil(h / size)
+        u, v = (uv[:, 0] / size).floor().long(), (uv[:, 1] / size).floor().long()
+        inside = (z > 0) & (u >= 0) & (u < cw) & (v >= 0) & (v < ch)
+        shares.append(len(torch.unique(v[inside] * cw + u[inside])) / (cw * ch))
+    return float(np.mean(shares)) if shares else 0.0
+
+
 SWEEP_VERSION = "plane-sweep-1"
 """Part of the cache key: a change to the sweep that changes its points changes this."""
 

@@ -333,9 +333,10 @@ class Trainer:
     @functools.cached_property
     def initial_points(self) -> tuple[np.ndarray, np.ndarray] | None:
         """([P, 3] points, [P, 3] colours) the Gaussians start from: the scene's, else (photos and poses but no
-        points) a plane sweep of the training views (``model.sweep_init``), beside which the points triangulated at
-        their known poses (``model.triangulate``) measure the scene's geometry (`triangulated_points`); either alone
-        where the other is off or finds too few; None means random initialisation."""
+        points) the points triangulated at their known poses (``model.triangulate``) where they cover enough of the
+        training views (``model.sweep_below_coverage``), else a plane sweep of those views (``model.sweep_init``),
+        beside which the triangulated points measure the scene's geometry (`triangulated_points`); either alone where
+        the other is off or finds too few; None means random initialisation."""
         mc = self.config.model
         if mc.random_init:
             self.decide("init", "random Gaussians: --model.random-init")
@@ -360,6 +361,19 @@ class Trainer:
         if found is not None and not mc.sweep_init:
             self.decide("init", found_text)
             return found.points, found.colors
+        thin = ""
+        if found is not None and mc.sweep_below_coverage < 1:
+            from metegs.data.plane_sweep import view_coverage
+
+            covered = view_coverage(found.points, self.dataset.cameras[self.dataset.train_indices])
+            if covered >= mc.sweep_below_coverage:
+                self.decide(
+                    "init",
+                    f"{found_text}; they cover {covered:.2f} of the training views (at least "
+                    f"--model.sweep-below-coverage {mc.sweep_below_coverage:g}): dense enough to start from, no sweep",
+                )
+                return found.points, found.colors
+            thin = f", covering {covered:.2f} of the training views (under {mc.sweep_below_coverage:g}),"
         swept, swept_text = self._swept(images, photos, whose, cache)
         if swept is None and found is not None:
             self.decide("init", f"{found_text}; the plane sweep found too few: {swept_text}")
@@ -372,8 +386,9 @@ class Trainer:
         if found is not None:
             self.triangulated_points = found.points
             why = (
-                f"the start of captures without points; the {len(found.points)} points triangulated from them measure "
-                "the scene's geometry, --model.no-sweep-init starts from those"
+                f"the start of captures without points where triangulation covers too little; the {len(found.points)} "
+                f"points triangulated from them{thin} measure the scene's geometry, --model.no-sweep-init starts from "
+                "those"
             )
         self.decide(
             "init",

@@ -467,8 +467,9 @@ def test_resuming_or_reopening_a_run_does_not_triangulate_again(photographed, tm
 
 
 def test_a_trainer_starts_from_the_sweep_and_keeps_the_triangulated_points(photographed, tmp_path, fake_triangulation):
-    """By default a poses-only capture starts from the plane sweep's points where triangulation works too, says so,
-    and keeps the triangulated points (for the weather's measures), also when the run is resumed."""
+    """By default a poses-only capture starts from the plane sweep's points where triangulation works but covers
+    little of the views (500 points in a blob), says so, and keeps the triangulated points (for the weather's
+    measures), also when the run is resumed."""
     from metegs.engine.config import TrainConfig
 
     scene, paths = photographed
@@ -480,7 +481,8 @@ def test_a_trainer_starts_from_the_sweep_and_keeps_the_triangulated_points(photo
     assert len(calls) == 1 and not trainer.random_init and trainer.swept_init
     assert np.array_equal(trainer.triangulated_points, points)
     assert "plane sweep" in trainer.decisions["init"] and "--model.no-sweep-init" in trainer.decisions["init"]
-    assert f"the {len(points)} points triangulated from them measure" in trainer.decisions["init"]
+    assert f"the {len(points)} points triangulated from them, covering 0." in trainer.decisions["init"]
+    assert "(under 0.55), measure the scene's geometry" in trainer.decisions["init"]
     assert 1000 <= len(trainer.model) <= 3000
     err = relative_depth_error(scene, trainer.model.means.detach().numpy())
     assert np.median(err) < 0.02, np.median(err)
@@ -513,8 +515,54 @@ def test_fog_is_measured_at_the_triangulated_points_beside_the_sweep(photographe
         clean_supervision=False,
         conditions=ConditionsConfig(precip_mm_h=0.0, visibility_m=300.0, metres_per_unit=100.0),
     )
-    config = replace(config, model=replace(config.model, init_random_points=3000))
+    config = replace(config, model=replace(config.model, init_random_points=3000, sweep_below_coverage=1.0))
     trainer = config.setup(scene=subset(scene, paths, source=tmp_path))
     assert trainer.swept_init
     seen = trainer.decisions["dark channel prior"]  # 12 neighbouring views: the medium's rule says what they see
     assert "plane sweep" not in seen and "the views see a scene point from distances 1.3" in seen, seen
+
+
+def test_view_coverage_counts_the_cells_that_hold_a_point(photographed):
+    """Points on the rays of the left half of a 320x240 view's pixels cover half its 32x24 cells; points behind
+    the camera cover none."""
+    from metegs.data.plane_sweep import _rays, view_coverage
+
+    scene, _ = photographed
+    cam = scene.cameras[[0]]
+    origin, dirs = _rays(cam, 0, 240, 320)
+    left = dirs.reshape(240, 320, 3)[:, :160].reshape(-1, 3)
+    assert view_coverage((origin + 2.0 * left).numpy(), cam) == pytest.approx(0.5)
+    assert view_coverage((origin - 2.0 * left).numpy(), cam) == 0.0
+    every = (origin + 3.0 * dirs).numpy()
+    assert view_coverage(every, cam) == pytest.approx(1.0)
+    assert view_coverage(every, scene.cameras[[0, 0]], cells=8) == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("dense", [True, False])
+def test_triangulated_points_that_cover_the_views_start_without_a_sweep(photographed, tmp_path, monkeypatch, dense):
+    """The synthetic scene's 4000 surface points cover 0.73 of the views: the Gaussians start from them and no sweep
+    runs; every 20th of them covers 0.13, and the sweep starts beside them (`model.sweep_below_coverage`)."""
+    import metegs.data.plane_sweep as sweep
+    from metegs.engine.config import TrainConfig
+
+    scene, paths = photographed
+    exact = np.asarray(scene.points, np.float32)[:: 1 if dense else 20]
+
+    def surface(image_paths, cameras, cache_dir, opts=None):
+        return tri.TriangulatedPoints(exact, np.full_like(exact, 0.5), len(image_paths), 0.5, cache=None)
+
+    swept = []
+    real_sweep = sweep.plane_sweep_points
+    monkeypatch.setattr(tri, "triangulate_known_poses", surface)
+    monkeypatch.setattr(sweep, "plane_sweep_points", lambda *a, **k: swept.append(1) or real_sweep(*a, **k))
+    config = TrainConfig(max_steps=1, progress=False, output_dir=tmp_path / "runs")
+    config = replace(config, model=replace(config.model, init_random_points=3000))
+    trainer = config.setup(scene=subset(scene, paths, source=None))
+    decision = trainer.decisions["init"]
+    assert trainer.swept_init == (not dense) and bool(swept) == (not dense)
+    if dense:
+        assert len(trainer.model) == len(exact) and trainer.triangulated_points is None
+        assert "no sweep" in decision and "--model.sweep-below-coverage 0.55" in decision, decision
+    else:
+        assert np.array_equal(trainer.triangulated_points, exact) and "plane sweep" in decision
+        assert "covering 0.1" in decision and "(under 0.55)" in decision, decision
