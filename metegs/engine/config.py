@@ -47,9 +47,9 @@ class ModelConfig:
     sweep only where triangulation fails; off with --model.no-triangulate: from random Gaussians."""
     sweep_below_coverage: Annotated[float, FRACTION] = 0.55
     """With sweep-init, where triangulation works too: start from the sweep only while the triangulated points cover
-    less than this share of the training views (cells of 1/32 of the longer side), else from those points. The
-    Ethiopian head's 3066 cover 0.45 and gain from the sweep; the fox's 9941 cover 0.70 and lose 1.1 dB by it under
-    its own heavy rain. 1: the sweep wherever it finds points."""
+    less than this share of the training views (cells of 1/32 of the longer side) and the sweep's cover more, else
+    from those points. The Ethiopian head's 3066 cover 0.45 and gain from the sweep; the fox's 9941 cover 0.70 and
+    lose 1.1 dB by it under its own heavy rain. 1: the sweep wherever it finds points."""
 
 
 @dataclass

@@ -361,11 +361,12 @@ class Trainer:
         if found is not None and not mc.sweep_init:
             self.decide("init", found_text)
             return found.points, found.colors
-        thin = ""
-        if found is not None and mc.sweep_below_coverage < 1:
-            from metegs.data.plane_sweep import view_coverage
+        from metegs.data.plane_sweep import view_coverage
 
-            covered = view_coverage(found.points, self.dataset.cameras[self.dataset.train_indices])
+        train_cameras = self.dataset.cameras[self.dataset.train_indices]
+        covered = None  # the share of the training views that the triangulated points cover, where it decides
+        if found is not None and mc.sweep_below_coverage < 1:
+            covered = view_coverage(found.points, train_cameras)
             if covered >= mc.sweep_below_coverage:
                 self.decide(
                     "init",
@@ -373,11 +374,24 @@ class Trainer:
                     f"--model.sweep-below-coverage {mc.sweep_below_coverage:g}): dense enough to start from, no sweep",
                 )
                 return found.points, found.colors
-            thin = f", covering {covered:.2f} of the training views (under {mc.sweep_below_coverage:g}),"
         swept, swept_text = self._swept(images, photos, whose, cache)
         if swept is None and found is not None:
             self.decide("init", f"{found_text}; the plane sweep found too few: {swept_text}")
             return found.points, found.colors
+        thin = ""
+        if swept is not None and covered is not None:
+            swept_covers = view_coverage(swept.points, train_cameras)
+            if swept_covers <= covered:
+                self.decide(
+                    "init",
+                    f"{found_text}; they cover {covered:.2f} of the training views, the plane sweep's "
+                    f"{len(swept.points)} points no more ({swept_covers:.2f}): no gain in starting from it",
+                )
+                return found.points, found.colors
+            thin = (
+                f", covering {covered:.2f} of the training views (under {mc.sweep_below_coverage:g}; the sweep's "
+                f"{swept_covers:.2f}),"
+            )
         if swept is None:
             self.decide("init", f"random Gaussians: {found_text}; {swept_text}", warn=found_text.startswith("pycolmap"))
             return None
@@ -386,9 +400,9 @@ class Trainer:
         if found is not None:
             self.triangulated_points = found.points
             why = (
-                f"the start of captures without points where triangulation covers too little; the {len(found.points)} "
-                f"points triangulated from them{thin} measure the scene's geometry, --model.no-sweep-init starts from "
-                "those"
+                f"the start of captures without points{' where triangulation covers too little' if thin else ''}; "
+                f"the {len(found.points)} points triangulated from them{thin} measure the scene's geometry, "
+                "--model.no-sweep-init starts from those"
             )
         self.decide(
             "init",

@@ -482,7 +482,7 @@ def test_a_trainer_starts_from_the_sweep_and_keeps_the_triangulated_points(photo
     assert np.array_equal(trainer.triangulated_points, points)
     assert "plane sweep" in trainer.decisions["init"] and "--model.no-sweep-init" in trainer.decisions["init"]
     assert f"the {len(points)} points triangulated from them, covering 0." in trainer.decisions["init"]
-    assert "(under 0.55), measure the scene's geometry" in trainer.decisions["init"]
+    assert "(under 0.55; the sweep's 0." in trainer.decisions["init"]
     assert 1000 <= len(trainer.model) <= 3000
     err = relative_depth_error(scene, trainer.model.means.detach().numpy())
     assert np.median(err) < 0.02, np.median(err)
@@ -565,4 +565,26 @@ def test_triangulated_points_that_cover_the_views_start_without_a_sweep(photogra
         assert "no sweep" in decision and "--model.sweep-below-coverage 0.55" in decision, decision
     else:
         assert np.array_equal(trainer.triangulated_points, exact) and "plane sweep" in decision
-        assert "covering 0.1" in decision and "(under 0.55)" in decision, decision
+        assert "covering 0.1" in decision and "(under 0.55; the sweep's 0." in decision, decision
+
+
+def test_sparse_triangulated_points_start_where_the_sweep_covers_no_more(photographed, tmp_path, monkeypatch):
+    """A sweep whose points cover less of the views than sparse triangulated points (a street whose views look along
+    it: the Lund street's 1761 SfM points cover 0.19, its sweep's 2322 0.12) does not replace them."""
+    import metegs.data.plane_sweep as sweep
+    from metegs.engine.config import TrainConfig
+
+    scene, paths = photographed
+    sparse = np.asarray(scene.points, np.float32)[::20]  # covers 0.13 of the views
+
+    def surface(image_paths, cameras, cache_dir, opts=None):
+        return tri.TriangulatedPoints(sparse, np.full_like(sparse, 0.5), len(image_paths), 0.5, cache=None)
+
+    one_spot = np.repeat(sparse[:1], 300, axis=0)  # 300 points, one cell of each view that sees them
+    monkeypatch.setattr(tri, "triangulate_known_poses", surface)
+    monkeypatch.setattr(sweep, "plane_sweep_points", lambda *a, **k: (one_spot, np.full_like(one_spot, 0.5)))
+    config = TrainConfig(max_steps=1, progress=False, output_dir=tmp_path / "runs")
+    trainer = config.setup(scene=subset(scene, paths, source=None))
+    decision = trainer.decisions["init"]
+    assert not trainer.swept_init and not trainer.random_init and len(trainer.model) == len(sparse)
+    assert "the plane sweep's 300 points no more" in decision, decision
