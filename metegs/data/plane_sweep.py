@@ -216,9 +216,9 @@ def view_coverage(points: np.ndarray, cameras: Cameras, cells: int = COVERAGE_CE
         uv, z = _project(pts, cameras, view)
         size = max(w, h) / cells
         cw, ch = math.ceil(w / size), math.ceil(h / size)
-        u, v = (uv[:, 0] / size).floor().long(), (uv[:, 1] / size).floor().long()
-        inside = (z > 0) & (u >= 0) & (u < cw) & (v >= 0) & (v < ch)
-        shares.append(len(torch.unique(v[inside] * cw + u[inside])) / (cw * ch))
+        inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+        u, v = (uv[inside] / size).floor().long().unbind(-1)
+        shares.append(len(torch.unique(v * cw + u)) / (cw * ch))
     return float(np.mean(shares)) if shares else 0.0
 
 

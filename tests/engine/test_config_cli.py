@@ -31,6 +31,12 @@ def test_unknown_or_mistyped_fields_are_errors():
         apply_overrides(TrainConfig(), {"background": "purple"})
 
 
+@pytest.mark.parametrize("share", ["1.5", "-0.1"])
+def test_a_coverage_share_outside_zero_to_one_is_named(share):
+    with pytest.raises(ConfigError, match=rf"--model.sweep-below-coverage {share}: expected a number >= 0 and <= 1"):
+        parse_args(["3dgs", "--model.sweep-below-coverage", share])
+
+
 def test_cli_flags_override_defaults():
     cfg = parse_args(
         ["3dgs", "--max-steps", "5", "--seed", "3", "--densify.grow-grad2d", "0.001", "--backend", "torch"]
