@@ -5,7 +5,8 @@
 #
 # Usage (repository root, on the GPU machine): OUT=/tmp/gpu-check DEADLINE_S=560 bash benchmarks/gpu_check.sh
 # STAGES="build step suite" runs some of them (build is needed by every later stage: gsplat compiles on first use).
-# Wheels for packages the machine lacks (gsplat, tyro, ...) are installed from .whl/ when it exists.
+# Wheels for packages the machine lacks (gsplat, tyro, pycolmap for the start of captures without points, ...) are
+# installed from .whl/ when it exists. gsplat builds first and alone: its first use deletes its build folder.
 # Logs go to $OUT/<stage>.log (at most 8 files); a short summary is printed last.
 set -u
 OUT=${OUT:-/tmp/gpu-check}
@@ -22,7 +23,7 @@ if ls .whl/*.whl >/dev/null 2>&1; then  # once per machine: reinstalling renews 
 else
     export PYTHONPATH=$PWD
 fi
-export PYTHONUNBUFFERED=1 MAX_JOBS=$(nproc) TORCH_EXTENSIONS_DIR=/tmp/torch_ext  # shared with gpu_real.sh
+export PYTHONUNBUFFERED=1 MAX_JOBS=$(nproc --all) TORCH_EXTENSIONS_DIR=/tmp/torch_ext  # shared with gpu_real.sh
 export TORCH_CUDA_ARCH_LIST=$(python3 -c "import torch; print('%d.%d' % torch.cuda.get_device_capability())" 2>/dev/null)
 export PY=python3 COLUMNS=160  # rich tables whole in the logs
 

@@ -12,7 +12,8 @@ if [ "$DEVICE" = cuda ]; then
   export PYTHONPATH=/tmp/site:$PWD
   export TORCH_CUDA_ARCH_LIST=$(python3 -c "import torch; print('%d.%d' % torch.cuda.get_device_capability())")
 fi
-export PYTHONUNBUFFERED=1 MAX_JOBS=$(nproc) TORCH_EXTENSIONS_DIR=/tmp/torch_ext
+# nproc --all: plain nproc prints OMP_NUM_THREADS (gpu_real.sh sets 2), and gsplat then built on 2 jobs
+export PYTHONUNBUFFERED=1 MAX_JOBS=$(nproc --all) TORCH_EXTENSIONS_DIR=/tmp/torch_ext
 { nvidia-smi -L 2>/dev/null; $PY -c "import torch; print(torch.__version__, torch.cuda.is_available())"; } > "$OUT/logs/env.log" 2>&1
 if [ "$DEVICE" = cuda ]; then
   timeout "${BUILD_S:-400}" $PY -c "

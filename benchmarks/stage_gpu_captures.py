@@ -3,13 +3,14 @@
 Writes into .gpu/ (ignored by git; carry it with the run): the Ethiopian head (LLFF), the instant-ngp fox (undistorted
 here) and the Lund street (COLMAP) as nerfstudio ``transforms.json`` scenes with their own train/test split, the fox
 and Lund at half their size (the training size is the same: both train at their power-of-two downscale under 640 px),
-each world turned so that metegs's own up estimate is +Z, sparse points triangulated here where the capture has none
-(every GPU run starts from them, the clean photos' points in every condition, where a CPU run triangulates from the
-photos it trains on and starts from a plane sweep of them: without pycolmap a GPU run would have no triangulated points
-to measure the weather at), the two met records, and ``real-gpu.yaml``:
+each world turned so that metegs's own up estimate is +Z, the capture's own sparse points where it has them (Lund's SfM
+points) and none where it has none, so that each GPU run triangulates from the photos it trains on and chooses its
+start (those points or a plane sweep) as a CPU run does (carry the pycolmap wheel: without it a run has no points to
+start from or to measure the weather at), the two met records, and ``real-gpu.yaml``:
 real.yaml's grid on CUDA without the rows the GPU image cannot run (the 2D restoration needs OpenCV's contrib module),
 plus two ablations of blind MeteGS (without the dark-channel prior; densification stopped at 20 % of the run) and
 3DGS's and blind MeteGS's rows also with seeds 1 and 2 (``seeds``: rows ``-seed1``, ``-seed2``).
+``--scenes`` stages some of them (the grid then names only those).
 Then, on the machine, ``bash benchmarks/gpu_real.sh`` runs it.
 
     python benchmarks/stage_gpu_captures.py        # reads $METEGS_CAPTURES and ../shared
@@ -30,6 +31,7 @@ import yaml
 from PIL import Image
 
 ROOT = Path(__file__).resolve().parents[1]
+FOLDERS = ("ethiopianhead-llff", "fox", "lund")  # the staged folders of real.yaml's scenes, in its order
 RECORDS = (
     "meteo/beijing-prsa/PRSA_Data_Aotizhongxin_20130301-20170228.csv",
     "meteo/isd-janmayen-1988/DS3505.txt",
@@ -51,11 +53,10 @@ def stage_scene(src: Path, dst: Path, shrink: int) -> None:
     """``src`` (any format metegs reads, undistorted by its parser) as a nerfstudio scene in ``dst``: photos (and
     masks) ``shrink`` times smaller, the world turned so metegs's up estimate is +Z (nerfstudio's convention; a
     COLMAP or LLFF world kept as it is puts height fog along the street), the same train/test split, and sparse
-    points: the scene's, else triangulated here from the staged training views (the GPU image has no pycolmap)."""
+    points where it has them (none: each run triangulates from its own photos)."""
     from metegs.cameras import Cameras
     from metegs.data.config import DatasetConfig
     from metegs.data.parsers.base import parse_scene
-    from metegs.data.triangulate import triangulate_known_poses
     from metegs.synth.writers import pinhole_frames, write_ply_points
 
     scene = parse_scene(src, None, DatasetConfig(downscale=1))
@@ -82,25 +83,19 @@ def stage_scene(src: Path, dst: Path, shrink: int) -> None:
         "test_filenames": [frames[i]["file_path"] for i in scene.test_indices],
     }
     if scene.points is not None and len(scene.points):
-        points, colours = np.asarray(scene.points, dtype=np.float64) @ turn[:3, :3].numpy().T, scene.point_colors
-    else:
-        (dst / "transforms.json").write_text(json.dumps(meta, indent=1))
-        staged = parse_scene(dst, None, DatasetConfig(downscale=1))
-        train = staged.train_indices
-        found = triangulate_known_poses([staged.image_paths[i] for i in train], staged.cameras[train], None)
-        points, colours = found.points, found.colors
-        print(f"{dst.name}: {len(points)} points triangulated from {found.num_views} training views")
-    write_ply_points(dst / "sparse_pc.ply", points, colours)
-    (dst / "transforms.json").write_text(json.dumps({**meta, "ply_file_path": "sparse_pc.ply"}, indent=1))
+        points = np.asarray(scene.points, dtype=np.float64) @ turn[:3, :3].numpy().T
+        write_ply_points(dst / "sparse_pc.ply", points, scene.point_colors)
+        meta["ply_file_path"] = "sparse_pc.ply"
+    (dst / "transforms.json").write_text(json.dumps(meta, indent=1))
 
 
-def grid_config(real: dict) -> dict:
-    """real.yaml's grid with the staged paths, on CUDA, without downloads, and the rows the GPU image can run."""
+def grid_config(real: dict, staged: list[str]) -> dict:
+    """real.yaml's grid on the ``staged`` captures' folders, on CUDA, without downloads, and the rows the GPU image
+    can run."""
     config = dict(real, name="real-gpu", output="outputs/bench/real-gpu")
     config["train"] = {**real["train"], "device": "cuda", "lpips_download": False}
     config["scenes"] = [
-        {**s, "data": f"data/{folder}"}
-        for s, folder in zip(real["scenes"], ("ethiopianhead-llff", "fox", "lund"), strict=True)
+        {**s, "data": f"data/{folder}"} for s, folder in zip(real["scenes"], FOLDERS, strict=True) if folder in staged
     ]
     text = yaml.safe_dump(real["conditions"])
     for record in RECORDS:
@@ -144,6 +139,7 @@ def main() -> None:
     parser.add_argument("--captures", type=Path, default=Path(os.environ.get("METEGS_CAPTURES", "/work/captures")))
     parser.add_argument("--shared", type=Path, default=ROOT.parent / "shared")
     parser.add_argument("--out", type=Path, default=ROOT / ".gpu")
+    parser.add_argument("--scenes", nargs="+", choices=FOLDERS, default=list(FOLDERS), help="the captures to stage")
     args = parser.parse_args()
     data = args.out / "data"
     shutil.rmtree(data, ignore_errors=True)
@@ -152,7 +148,8 @@ def main() -> None:
         "fox": (args.captures / "fox-instant-ngp/data/nerf/fox", 2),
         "lund": (args.captures / "opensfm-lund/scene", 2),
     }
-    for folder, (src, shrink) in captures.items():
+    for folder in args.scenes:
+        src, shrink = captures[folder]
         stage_scene(src, data / folder, shrink)
         for note in ("SOURCE.txt", "SOURCE.md", "LICENSE.txt", "LICENSE.md", "LICENSE"):
             for where in (src, *src.parents[:3]):
@@ -165,9 +162,9 @@ def main() -> None:
     for path in args.out.rglob("*"):
         path.chmod(path.stat().st_mode | 0o200)  # ../shared is read-only; the copies must be removable
     real = yaml.safe_load((ROOT / "configs/bench/real.yaml").read_text())
-    (args.out / "real-gpu.yaml").write_text(yaml.safe_dump(grid_config(real), sort_keys=False, width=120))
+    (args.out / "real-gpu.yaml").write_text(yaml.safe_dump(grid_config(real, args.scenes), sort_keys=False, width=120))
     size = sum(p.stat().st_size for p in args.out.rglob("*") if p.is_file()) / 2**20
-    print(f"staged {args.out} ({size:.1f} MiB): carry it with .whl (gsplat, tyro and their wheels)")
+    print(f"staged {args.out} ({size:.1f} MiB): carry it with .whl (gsplat, pycolmap, tyro and their wheels)")
 
 
 if __name__ == "__main__":

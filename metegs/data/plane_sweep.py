@@ -209,7 +209,8 @@ def view_coverage(points: np.ndarray, cameras: Cameras, cells: int = COVERAGE_CE
     """Mean over the views of ``cameras`` of the share of cells (``cells`` along the longer side) that hold at least
     one of ``points`` [P, 3] in front of the camera: how much of each view a start from those points leaves empty.
     -> float in [0, 1]."""
-    pts = torch.as_tensor(points, dtype=torch.float32)
+    pts = torch.as_tensor(points, dtype=torch.float32).cpu()
+    cameras = cameras.to("cpu")  # the training device's cameras (CUDA) beside points read from a file
     shares = []
     for view in range(len(cameras)):
         w, h = int(cameras.width[view]), int(cameras.height[view])

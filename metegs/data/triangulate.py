@@ -58,6 +58,7 @@ class TriangulatedPoints:
 def cache_key(image_paths: list[Path], cameras: Cameras, version: str, options: str) -> str:
     """Digest of the photos (path, size, mtime), the cameras, the tool's ``version`` and its ``options``."""
     h = hashlib.sha1(version.encode())
+    cameras = cameras.to("cpu")  # one key whatever device the cameras are on
     for path in image_paths:
         stat = Path(path).stat()
         h.update(f"{Path(path).resolve()}|{stat.st_size}|{stat.st_mtime_ns}".encode())
@@ -115,6 +116,7 @@ def _triangulate(image_paths: list[Path], cameras: Cameras, opts: SfmOptions) ->
     pycolmap = _pycolmap()
     _quiet(pycolmap)
     pycolmap.logging.minloglevel = 2  # not even the 'all threads' memory warning of every extraction chunk
+    cameras = cameras.to("cpu")
     K = cameras.intrinsics().double().numpy()
     w2c = cameras.world_to_cameras().double().numpy()
     shared = bool(

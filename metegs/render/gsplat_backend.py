@@ -14,12 +14,16 @@ reference: classic (non-antialiased) EWA with ``eps2d``, opacity-aware tile exte
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
+
 import torch
 
 from metegs.cameras import Cameras
 from metegs.errors import MetegsError
 from metegs.gaussians.model import GaussianSet
 from metegs.render.base import RenderOutput, RenderSettings
+from metegs.render.build_lock import build_lock
 from metegs.render.optional import OptionalComponent
 from metegs.render.pipeline import finish_render, resolve_sh_degree
 
@@ -37,13 +41,29 @@ def load_gsplat():
     return GSPLAT.load()
 
 
+def build_lock_dir() -> Path:
+    """The folder of metegs' lock around gsplat's first use, beside (not in) gsplat's JIT build folder: that first use
+    deletes the build folder wherever it finds no finished build, so two processes starting at once on a fresh
+    machine delete each other's objects (a lent H100: "can't create ... .o: No such file or directory")."""
+    from torch.utils.cpp_extension import get_default_build_root
+
+    return Path(os.environ.get("TORCH_EXTENSIONS_DIR") or get_default_build_root()) / "gsplat_cuda.metegs"
+
+
 def _import_and_smoke_test():
     if not torch.cuda.is_available():
         raise GsplatUnavailableError("no CUDA device")
-    try:
-        import gsplat
-    except ImportError as exc:
-        raise GsplatUnavailableError(f"gsplat is not installed (pip install 'metegs[cuda]'): {exc}") from exc
+    with build_lock(build_lock_dir(), "gsplat's CUDA kernels"):
+        try:
+            import gsplat
+        except ImportError as exc:
+            raise GsplatUnavailableError(f"gsplat is not installed (pip install 'metegs[cuda]'): {exc}") from exc
+        _smoke_render(gsplat)  # the first render JIT-compiles gsplat's kernels (minutes, once per machine)
+    return gsplat
+
+
+def _smoke_render(gsplat) -> None:
+    """Render two Gaussians with ``gsplat`` on the GPU; raises `GsplatUnavailableError` if the image is not finite."""
     device = torch.device("cuda")
     means = torch.tensor([[0.0, 0.0, 2.0], [0.1, 0.0, 3.0]], device=device)
     quats = torch.tensor([[1.0, 0.0, 0.0, 0.0]] * 2, device=device)
@@ -64,7 +84,6 @@ def _import_and_smoke_test():
     torch.cuda.synchronize()
     if not torch.isfinite(colors).all():
         raise GsplatUnavailableError("the smoke render returned non-finite values")
-    return gsplat
 
 
 GSPLAT = OptionalComponent(

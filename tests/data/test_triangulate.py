@@ -542,6 +542,23 @@ def test_view_coverage_counts_the_cells_that_hold_a_point(photographed):
     assert view_coverage((origin + 2.0 * below).numpy(), cam, cells=7) == 0.0
 
 
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_the_start_reads_cameras_on_the_training_device(photographed):
+    """A CUDA run's cameras live on the GPU: the coverage, the caches' keys and the sweep read them there as on the
+    CPU (a lent H100 found all three refusing them)."""
+    from metegs.data.plane_sweep import _rays, plane_sweep_points, view_coverage
+
+    scene, paths = photographed
+    cams = scene.cameras[list(range(VIEWS))]
+    origin, dirs = _rays(cams, 0, 240, 320)
+    points = (origin + 2.0 * dirs.reshape(240, 320, 3)[:, :160].reshape(-1, 3)).numpy()
+    assert view_coverage(points, cams.to("cuda")) == view_coverage(points, cams)
+    assert tri.cache_key(paths, cams.to("cuda"), "v", "") == tri.cache_key(paths, cams, "v", "")
+    images = [img.cuda() for img in scene.images[:VIEWS]]
+    swept = plane_sweep_points(images, cams.to("cuda"), max_points=500)
+    assert np.array_equal(swept[0], plane_sweep_points(scene.images[:VIEWS], cams, max_points=500)[0])
+
+
 @pytest.mark.parametrize("dense", [True, False])
 def test_triangulated_points_that_cover_the_views_start_without_a_sweep(photographed, tmp_path, monkeypatch, dense):
     """The synthetic scene's 4000 surface points cover 0.73 of the views: the Gaussians start from them and no sweep

@@ -45,6 +45,46 @@ def test_unavailable_reason_is_kept_and_warned_once(monkeypatch):
     assert not GsplatRasterizer.available("cuda")  # cached, no second warning (warnings are errors here)
 
 
+def test_gsplats_first_use_holds_a_lock_that_a_second_process_waits_on(tmp_path, monkeypatch):
+    """gsplat's first render builds its kernels after deleting its build folder: a second process must not start
+    one meanwhile. A stand-in gsplat package checks, from its import and its render, that another process cannot
+    take the lock."""
+    fcntl = pytest.importorskip("fcntl")
+    from metegs.render.build_lock import LOCK_NAME
+
+    monkeypatch.setenv("TORCH_EXTENSIONS_DIR", str(tmp_path / "ext"))
+    lock = gsplat_backend.build_lock_dir() / LOCK_NAME
+    assert lock.parent.parent == tmp_path / "ext"
+    probe = f"import fcntl, subprocess, sys; r = subprocess.run([sys.executable, '-c', {PROBE!r}, {str(lock)!r}])"
+    package = tmp_path / "site" / "gsplat"
+    package.mkdir(parents=True)
+    (package / "__init__.py").write_text(f"{probe}\nIMPORT_LOCKED = r.returncode == 1\n")
+    monkeypatch.syspath_prepend(str(tmp_path / "site"))
+    monkeypatch.delitem(sys.modules, "gsplat", raising=False)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    rendered = []
+
+    def smoke(module):
+        rendered.append(subprocess.run([sys.executable, "-c", PROBE, str(lock)]).returncode == 1)
+
+    monkeypatch.setattr(gsplat_backend, "_smoke_render", smoke)
+    module = gsplat_backend._import_and_smoke_test()
+    assert module.IMPORT_LOCKED and rendered == [True]
+    with open(lock) as f:  # released afterwards
+        fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+
+
+PROBE = (
+    "import fcntl, sys\n"
+    "with open(sys.argv[1]) as f:\n"
+    "    try:\n"
+    "        fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)\n"
+    "    except BlockingIOError:\n"
+    "        sys.exit(1)\n"
+)
+"""Exits 1 where another process holds the lock file argv[1], 0 where this one can take it."""
+
+
 cuda = pytest.mark.skipif(
     not (torch.cuda.is_available() and GsplatRasterizer.available("cuda")), reason="needs CUDA and gsplat"
 )
