@@ -30,6 +30,7 @@ import cv2
 import numpy as np
 
 from metegs.config import InstantiateConfig
+from metegs.errors import ConfigError
 from metegs.restore.base import check_image
 
 
@@ -82,6 +83,13 @@ class DarkChannelPrior:
     removes = frozenset({"fog"})
 
     def __init__(self, config: DarkChannelPriorConfig | None = None):
+        if not hasattr(cv2, "ximgproc"):  # before any photo is restored, not at the first guided filter
+            raise ConfigError(
+                f"the dcp restorer needs OpenCV's contrib module (cv2.ximgproc), which the OpenCV at {cv2.__file__} "
+                f"({cv2.__version__}) lacks: another OpenCV package (opencv-python or opencv-python-headless) shadows "
+                "metegs's opencv-contrib-python-headless; pip uninstall opencv-python opencv-python-headless, then "
+                "pip install --force-reinstall opencv-contrib-python-headless"
+            )
         self.config = config or DarkChannelPriorConfig()
 
     def transmission(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

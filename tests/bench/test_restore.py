@@ -30,6 +30,15 @@ def textured(h=48, w=64, seed=0):
     return np.clip(img + 0.02 * rng.standard_normal(img.shape), 0, 1).astype(np.float32)
 
 
+def test_an_opencv_without_its_contrib_module_is_named_before_any_photo(monkeypatch):
+    """Another OpenCV package installed beside opencv-contrib shadows it (the lent GPU machines' image does)."""
+    import cv2
+
+    monkeypatch.delattr(cv2, "ximgproc", raising=False)
+    with pytest.raises(ConfigError, match=r"contrib module \(cv2\.ximgproc\).*pip uninstall opencv-python"):
+        make_restorer("dcp")
+
+
 def test_dark_channel_prior_inverts_the_fog_model():
     clean = textured()
     A = np.array([0.85, 0.88, 0.9], np.float32)
