@@ -653,6 +653,7 @@ def render():
     return [out.rgb, out.depth, g.means.grad]
 threads = lambda: len(os.listdir("/proc/self/task"))
 torch.rand(1_000_000).exp_()  # torch's OpenMP team exists
+torch.ones(1, requires_grad=True).exp().sum().backward()  # and autograd's threads, one per GPU (on a GPU machine: 19 -> 20)
 before, on_main = threads(), render()
 after_main, team_here = threads(), ext.uses_openmp_team()
 box = {}
