@@ -164,7 +164,7 @@ def main() -> None:
     real = yaml.safe_load((ROOT / "configs/bench/real.yaml").read_text())
     (args.out / "real-gpu.yaml").write_text(yaml.safe_dump(grid_config(real, args.scenes), sort_keys=False, width=120))
     size = sum(p.stat().st_size for p in args.out.rglob("*") if p.is_file()) / 2**20
-    print(f"staged {args.out} ({size:.1f} MiB): carry it with .whl (gsplat, pycolmap, tyro and their wheels)")
+    print(f"staged {args.out} ({size:.1f} MiB): carry it with .whl (bash benchmarks/gpu_wheels.sh)")
 
 
 if __name__ == "__main__":
