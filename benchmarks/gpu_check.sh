@@ -11,7 +11,7 @@
 set -u
 OUT=${OUT:-/tmp/gpu-check}
 DEADLINE_S=${DEADLINE_S:-560}
-STAGES=${STAGES:-build tests raster train step suite}
+STAGES=${STAGES:-build tests raster train step refusals suite}
 mkdir -p "$OUT"
 T0=$(date +%s)
 SUMMARY=()
@@ -53,6 +53,8 @@ export -f cli
     nvidia-smi
     $PY -c "import torch, sys; print(sys.version); print(torch.__version__, torch.version.cuda, torch.cuda.get_device_name())"
     nvcc --version | tail -n 2
+    c++ --version | head -n 1  # the compiler of the cpu extension there, and torch's own
+    $PY -c "import torch; print(torch.__config__.show())" | grep -oE "CXX_COMPILER=[^,]*"
     echo "TORCH_CUDA_ARCH_LIST=$TORCH_CUDA_ARCH_LIST MAX_JOBS=$MAX_JOBS"
 } >"$OUT/env.log" 2>&1
 cat "$OUT/env.log"
@@ -67,6 +69,9 @@ stage train 240 cli train metegs-full --experiment-name gpu-check
 RUN=$(ls -td outputs/*/*/*/ 2>/dev/null | head -n 1)
 [ -n "$RUN" ] && find "$RUN" \( -name '*.json' -o -name '*.yml' \) -print0 | tar -czf "$OUT/train-run.tgz" --null -T -
 stage step 150 cli bench step --device cuda --output "$OUT/step.json"
+# where a cpu kernel refuses bad input its TORCH_CHECK must raise; two xdist workers died there on an H100 (2026-12-05)
+stage refusals 60 $PY -m pytest -q -p no:cacheprovider -s tests/losses/test_fused_opening.py::test_bad_input_is_refused_by_the_kernel \
+    tests/losses/test_fused_ssim.py::test_bad_shapes_are_refused_by_the_kernel
 stage suite 300 $PY -m pytest -q -p no:cacheprovider -n "$(nproc)" -m "not data"
 
 echo "== summary ($(($(date +%s) - T0)) s)"
