@@ -55,7 +55,7 @@ def test_gsplats_first_use_holds_a_lock_that_a_second_process_waits_on(tmp_path,
     monkeypatch.setenv("TORCH_EXTENSIONS_DIR", str(tmp_path / "ext"))
     lock = gsplat_backend.build_lock_dir() / LOCK_NAME
     assert lock.parent.parent == tmp_path / "ext"
-    probe = f"import fcntl, subprocess, sys; r = subprocess.run([sys.executable, '-c', {PROBE!r}, {str(lock)!r}])"
+    probe = f"import subprocess, sys; r = subprocess.run([sys.executable, '-c', {PROBE!r}, {str(lock)!r}])"
     package = tmp_path / "site" / "gsplat"
     package.mkdir(parents=True)
     (package / "__init__.py").write_text(f"{probe}\nIMPORT_LOCKED = r.returncode == 1\n")
