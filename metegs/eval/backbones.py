@@ -212,6 +212,8 @@ def download_backbone(spec: BackboneSpec, net: str, how: str | None = None) -> M
                 )
         except Exception as e:  # noqa: BLE001 - offline (URLError), hash mismatch, disk full...
             FAILED_DOWNLOADS[spec.url] = f"{type(e).__name__}: {e}"
+            # the announcement above reads like a download that worked: say at once that it did not
+            print(f"Download failed: {spec.url} ({FAILED_DOWNLOADS[spec.url]})", file=sys.stderr)
     raise WeightsUnavailable(
         net,
         "backbone",

@@ -252,7 +252,7 @@ def test_lpips_mismatched_checkpoint_is_reported(tmp_path, empty_hub):
 
 
 def test_lpips_backbone_downloads_on_first_use_is_tried_once_offline_and_never_when_off(
-    tmp_path, empty_hub, monkeypatch
+    tmp_path, empty_hub, monkeypatch, capsys
 ):
     calls = []
 
@@ -266,6 +266,7 @@ def test_lpips_backbone_downloads_on_first_use_is_tried_once_offline_and_never_w
     model, reason = lp.try_load_lpips("alex", heads_dir=heads_dir)
     assert model is None and calls == [backbones.BACKBONES["alex"].url]
     assert "download" in reason and "network unreachable" in reason and str(empty_hub / "checkpoints") in reason
+    assert capsys.readouterr().err.count("Download failed") == 1  # the log says so beside torch's announcement
     assert lp.try_load_lpips("alex", heads_dir=heads_dir)[1] == reason and len(calls) == 1  # one try per process
     monkeypatch.setattr(backbones, "FAILED_DOWNLOADS", {})  # a new process, online: torchvision's own file arrives
     state = torch.load(backbone, weights_only=True)
