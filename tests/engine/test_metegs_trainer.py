@@ -306,6 +306,43 @@ def test_the_dark_channel_prior_holds_the_fog_where_blind_photos_cannot_measure_
         assert other.decisions["fog-analytic patches"].startswith("on:" if name == "refs" else "off:")
 
 
+def test_under_rain_through_fog_a_forward_facing_rig_keeps_the_dark_channel_fog_uniform(tmp_path):
+    """Blind under the dark-channel prior, heavy rain through the record's fog: a forward-facing rig sees each point
+    from about one distance, where the height profile and the per-view patches take each view's rain light for fog
+    (the Ethiopian head), so both stay off; views around the scene (2x apart, the fox's 2.15x) keep them, as does the
+    rig in fog alone."""
+    from metegs.losses.dark_channel import DarkChannelPriorConfig
+    from metegs.weather.medium import MEASURABLE_DISTANCE_SPREAD
+
+    rain_fog = ConditionsConfig(precip_mm_h=20.0, visibility_m=300.0, metres_per_unit=10.0)
+    forced = dict(max_steps=1, clean_supervision=False, dark_channel=DarkChannelPriorConfig(mode="on"))
+    around = tiny_metegs(tmp_path / "around", conditions=rain_fog, **forced).setup()
+    assert around._distance_spread >= MEASURABLE_DISTANCE_SPREAD and len(around.dehazing) == 1
+    (fog,) = around.dehazing
+    assert around.decisions["fog-analytic layers"].startswith("on:") and fog.height_rate.requires_grad
+    assert around.decisions["fog-analytic patches"].startswith("on:") and fog.patch_log_scale.requires_grad
+    rig = forward_facing(around.scene)
+    facing = tiny_metegs(tmp_path / "facing", conditions=rain_fog, **forced).setup(scene=rig)
+    assert facing._distance_spread < MEASURABLE_DISTANCE_SPREAD
+    (fog,) = facing.dehazing
+    for piece in ("layers", "patches"):
+        decision = facing.decisions[f"fog-analytic {piece}"]
+        assert decision.startswith("off: heavy rain (20 mm/h) through fog, seen from distances 1.")
+        assert decision.endswith("so the fog stays uniform")
+    assert not fog.height_rate.requires_grad and not fog.patch_log_scale.requires_grad
+    assert not fog.layered and not fog.patchy
+    learned = {id(p) for o in facing.method_optimizers.values() for g in o.param_groups for p in g["params"]}
+    assert id(fog.height_rate) not in learned and id(fog.patch_log_scale) not in learned
+    fog_alone = replace(rain_fog, precip_mm_h=0.0)
+    foggy = tiny_metegs(tmp_path / "fog", conditions=fog_alone, **forced).setup(scene=rig)
+    assert foggy.decisions["fog-analytic layers"].startswith("on:")
+    assert foggy.decisions["fog-analytic patches"].startswith("on:")
+    light = tiny_metegs(tmp_path / "light", conditions=replace(rain_fog, precip_mm_h=1.0), **forced).setup(scene=rig)
+    assert light.decisions["fog-analytic patches"].startswith("on:")
+    refs = tiny_metegs(tmp_path / "refs", conditions=rain_fog, max_steps=1).setup(scene=rig)
+    assert refs.decisions["fog-analytic patches"].startswith("on:")  # the references measure the fog
+
+
 def test_blind_beta_starts_and_stays_at_the_photos_measure_at_the_scene_points(tmp_path):
     """Blind, where the views see the scene's points from distances far apart, the photos' colours there measure β
     (`fit_uniform_medium`): β starts at that measure, the prior holds it there (Gaussians free to take the haze in
