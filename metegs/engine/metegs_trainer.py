@@ -579,13 +579,13 @@ class MeteGSTrainer(Trainer):
         weight = f" (weight {fog.config.record_prior_weight:g})" if fog.use_record_prior else ""
         self.decide(f"{name} prior", f"{'on' if fog.use_record_prior else 'off'}{weight}: {why}")
         uniform = self._rain_through_fog_seen_from_one_distance() if dark else None
-        one_distance = (
+        one_distance = uniform and (
             f"off: {uniform}: each view's share of the light the rain adds cannot be told from fog that changes with "
             "height or from patch to patch where every point is seen from about one distance, so the fog stays uniform"
         )
         if fog.use_record_prior and fog.measured_beta is None:
             self.decide(f"{name} layers", flat)
-        elif uniform is not None:
+        elif one_distance:
             self.decide(f"{name} layers", one_distance)
         elif fog.learn_layers():
             self.decide(f"{name} layers", "on: β learns how it changes with height" + self._start_layers(fog))
@@ -599,7 +599,7 @@ class MeteGSTrainer(Trainer):
                 "off: they learn where the views cannot measure β, under the dark channel prior or beside clean "
                 "references",
             )
-        elif uniform is not None:
+        elif one_distance:
             self.decide(f"{name} patches", one_distance)
         elif dark and self._rain_veil_too_thin() is not None:
             self.decide(
