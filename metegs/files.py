@@ -5,6 +5,7 @@ output and renamed into place)."""
 from __future__ import annotations
 
 import contextlib
+import filecmp
 import os
 import shutil
 import sys
@@ -122,3 +123,20 @@ def process_alive(pid: int) -> bool:
     except PermissionError:
         return True
     return True
+
+
+def same_files(a: Path, b: Path) -> bool:
+    """Whether ``a`` and ``b`` hold the same bytes: two files, or two folders with the same files under the same
+    names. Hidden names (the caches metegs writes beside a dataset, such as ``.metegs_points``) are left out."""
+    a, b = Path(a), Path(b)
+    if a.is_file() and b.is_file():
+        return filecmp.cmp(a, b, shallow=False)
+    if not (a.is_dir() and b.is_dir()):
+        return False
+
+    def visible(root: Path) -> list[Path]:
+        files = (p.relative_to(root) for p in root.rglob("*") if p.is_file())
+        return sorted(p for p in files if not any(part.startswith(".") for part in p.parts))
+
+    names = visible(a)
+    return names == visible(b) and all(filecmp.cmp(a / n, b / n, shallow=False) for n in names)

@@ -41,7 +41,7 @@ from metegs.bench.memory import sync
 from metegs.bench.suite_config import MethodSpec, SceneSpec, SuiteConfig
 from metegs.config import apply_overrides, to_dict
 from metegs.errors import ConfigError, MetegsError
-from metegs.files import atomic_write_text
+from metegs.files import atomic_write_text, same_files
 
 DEFAULT_RESTORERS = {"rain": "kang2012", "fog": "dcp"}
 """The 2D restorer of each weather kind for methods on restored photos that name none."""
@@ -132,16 +132,24 @@ def config_changes(run_dir: Path, config) -> list[str]:
         path
         for k, v in now.items()
         if k not in VOLATILE_FIELDS and k in saved
-        for path in _differing_paths(saved[k], v, k)
+        for path, was, is_now in _differing_values(saved[k], v, k)
+        if not _same_input(was, is_now)
     )
 
 
-def _differing_paths(saved: Any, now: Any, path: str) -> list[str]:
-    """Dotted paths under ``path`` where the plain values ``saved`` and ``now`` differ (nested dicts compared key by
-    key; a key only one side has is left out, as a field added since the run was made)."""
+def _differing_values(saved: Any, now: Any, path: str) -> list[tuple[str, Any, Any]]:
+    """(dotted path, saved value, value now) under ``path`` where the plain values ``saved`` and ``now`` differ
+    (nested dicts compared key by key; a key only one side has is left out, as a field added since the run was
+    made)."""
     if isinstance(saved, dict) and isinstance(now, dict):
-        return [p for k in now if k in saved for p in _differing_paths(saved[k], now[k], f"{path}.{k}")]
-    return [] if saved == now else [path]
+        return [d for k in now if k in saved for d in _differing_values(saved[k], now[k], f"{path}.{k}")]
+    return [] if saved == now else [(path, saved, now)]
+
+
+def _same_input(saved: Any, now: Any) -> bool:
+    """Whether two differing values name files or folders with the same contents: a suite folder copied or moved
+    elsewhere still holds the photos its runs were made from."""
+    return isinstance(saved, str) and isinstance(now, str) and "/" in saved + now and same_files(saved, now)
 
 
 def _finite(v: Any) -> Any:

@@ -539,3 +539,38 @@ def test_seeds_table_gives_mean_and_spread_and_a_repeated_seed_is_refused():
     assert ablation_table(results, "s") is None  # the copies are not ablations
     with pytest.raises(ConfigError, match="seeds"):
         suite_from_dict({"scenes": [{"name": "x"}], "methods": [{"name": "m", "photos": "clean", "seeds": [0]}]})
+
+
+def test_a_copied_suite_folder_reuses_its_runs_without_a_data_warning(tmp_path):
+    """A run whose photos now lie in a copy of its folder is the same run; a changed photo makes it another."""
+    import shutil
+
+    from metegs.bench.suite import config_changes
+    from metegs.config import save_yaml
+    from metegs.data.config import DatasetConfig
+    from metegs.engine.config import TrainConfig
+
+    def config(data):
+        return TrainConfig(data=data, dataset=DatasetConfig(auto_max_side=640))
+
+    made_from = tmp_path / "old" / "data"
+    (made_from / "images").mkdir(parents=True)
+    (made_from / "images" / "a.png").write_bytes(b"photo a")
+    (made_from / "weather.json").write_text("{}")
+    run = tmp_path / "old" / "run"
+    run.mkdir()
+    save_yaml(config(made_from), run / "config.yml")
+
+    copy = tmp_path / "new" / "data"
+    shutil.copytree(made_from, copy)
+    (copy / ".metegs_points").mkdir()  # a cache written beside the photos, not part of them
+    (copy / ".metegs_points" / "points-0.npz").write_bytes(b"cache")
+    assert config_changes(run, config(copy)) == []
+
+    (copy / "images" / "a.png").write_bytes(b"photo b")
+    assert config_changes(run, config(copy)) == ["data"]
+    (copy / "images" / "a.png").write_bytes(b"photo a")
+    (copy / "images" / "b.png").write_bytes(b"photo a")
+    assert config_changes(run, config(copy)) == ["data"]
+    shutil.rmtree(made_from)  # the photos it was made from are gone: it cannot be told the same
+    assert config_changes(run, config(copy)) == ["data"]
