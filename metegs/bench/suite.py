@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import platform
 import time
 import traceback
@@ -148,8 +149,10 @@ def _differing_values(saved: Any, now: Any, path: str) -> list[tuple[str, Any, A
 
 def _same_input(saved: Any, now: Any) -> bool:
     """Whether two differing values name files or folders with the same contents: a suite folder copied or moved
-    elsewhere still holds the photos its runs were made from."""
-    return isinstance(saved, str) and isinstance(now, str) and "/" in saved + now and same_files(saved, now)
+    elsewhere still holds the photos its runs were made from. Only values with a path separator are looked up, so
+    that a plain word (``method: 3dgs``) is never read as a file of the working folder."""
+    paths = (saved, now)
+    return all(isinstance(v, str) for v in paths) and any(os.sep in v for v in paths) and same_files(saved, now)
 
 
 def _finite(v: Any) -> Any:
