@@ -1,0 +1,60 @@
+"""Blind MeteGS on the built-in scene in fog, its height profile as the decisions choose against a uniform fog.
+
+    python benchmarks/fog_layers.py [physical] [fog] [smog] … [--steps 700]
+
+`physical` is metegs's own fog of 200 m (uniform); the others are the third generator's variants with fog, of 300 m
+(`benchmarks/other_generator.py probe`'s weather: 22 mm/h with it where the variant draws streaks). Each variant trains twice as the CI weather-removal test does (24 views at 160×120,
+every 6th held out): once as decided (`fog-analytic layers`, which learns a profile from uniform where the points read
+the fog denser upwards) and once with `--fog-analytic.no-layered`, and prints one JSON line per run: PSNR / SSIM on the
+clean test views, the learnt β and scale height, and the layers decision.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+from contextlib import nullcontext
+from pathlib import Path
+
+from other_generator import VARIANTS, blind_config, drawing
+
+
+def run(variant: str, layered: bool, steps: int) -> dict:
+    """Blind MeteGS in ``variant``'s fog, the fog's profile on (as decided) or off -> its metrics and medium."""
+    from metegs.weather.conditions import ConditionsConfig
+    from metegs.weather.fog_analytic import FogAnalyticConfig
+
+    physical = variant == "physical"
+    rain = not physical and VARIANTS[variant].streak_radiance is not None
+    conditions = ConditionsConfig(precip_mm_h=22.0 if rain else 0.0, visibility_m=200.0 if physical else 300.0)
+    family, kinds = ("physical" if physical else "independent"), ("rain+fog" if rain else "fog")
+    with tempfile.TemporaryDirectory() as tmp, nullcontext() if physical else drawing(VARIANTS[variant]):
+        fog = FogAnalyticConfig(layered=layered)
+        trainer = blind_config(Path(tmp), 160, steps, kinds, family, conditions, fog_analytic=fog).setup()
+        metrics = trainer.train()
+    medium = (metrics.get("weather") or {}).get("fog-analytic", {})
+    return {
+        "variant": variant,
+        "layered": layered,
+        "psnr": round(metrics["psnr"], 2),
+        "ssim": round(metrics["ssim"], 3),
+        "beta_per_m": medium.get("beta_per_m"),
+        "scale_height_m": medium.get("scale_height_m"),
+        "layers": trainer.decisions.get("fog-analytic layers"),
+    }
+
+
+def main() -> None:
+    fogs = ["physical", *sorted(name for name, v in VARIANTS.items() if v.fog)]
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("variants", nargs="*", choices=fogs, default=fogs)
+    parser.add_argument("--steps", type=int, default=700)
+    args = parser.parse_args()
+    for variant in args.variants:
+        for layered in (True, False):
+            print(json.dumps(run(variant, layered, args.steps), default=str), flush=True)
+
+
+if __name__ == "__main__":
+    main()
