@@ -48,10 +48,15 @@ def run(variant: str, layered: bool, steps: int) -> dict:
 def main() -> None:
     fogs = ["physical", *sorted(name for name, v in VARIANTS.items() if v.fog)]
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("variants", nargs="*", choices=fogs, default=fogs)
+    parser.add_argument(
+        "variants", nargs="*", metavar="VARIANT", help=f"fogs to run, of {', '.join(fogs)} (default: all)"
+    )
     parser.add_argument("--steps", type=int, default=700)
     args = parser.parse_args()
-    for variant in args.variants:
+    unknown = sorted(set(args.variants) - set(fogs))
+    if unknown:
+        parser.error(f"unknown fog {', '.join(unknown)}; choose from {', '.join(fogs)}")
+    for variant in args.variants or fogs:
         for layered in (True, False):
             print(json.dumps(run(variant, layered, args.steps), default=str), flush=True)
 
