@@ -2,9 +2,9 @@
 
     python benchmarks/fog_layers.py [physical] [fog] [smog] … [--steps 700]
 
-`physical` is metegs's own fog of 200 m (uniform); the others are the third generator's variants with fog, of 300 m
-(`benchmarks/other_generator.py probe`'s weather: 22 mm/h with it where the variant draws streaks). Each variant trains twice as the CI weather-removal test does (24 views at 160×120,
-every 6th held out): once as decided (`fog-analytic layers`, which learns a profile from uniform where the points read
+`physical` is metegs's own fog of 200 m (uniform); the others are the third generator's variants with fog, under
+`benchmarks/other_generator.py probe`'s weather (300 m, and 22 mm/h where the variant draws streaks). Each variant
+trains twice as the CI weather-removal test does (24 views at 160×120, every 6th held out): once as decided (`fog-analytic layers`, which learns a profile from uniform where the points read
 the fog denser upwards) and once with `--fog-analytic.no-layered`, and prints one JSON line per run: PSNR / SSIM on the
 clean test views, the learnt β and scale height, and the layers decision.
 """
@@ -17,7 +17,7 @@ import tempfile
 from contextlib import nullcontext
 from pathlib import Path
 
-from other_generator import VARIANTS, blind_config, drawing
+from other_generator import VARIANTS, blind_config, drawing, probe_weather
 
 
 def run(variant: str, layered: bool, steps: int) -> dict:
@@ -26,9 +26,10 @@ def run(variant: str, layered: bool, steps: int) -> dict:
     from metegs.weather.fog_analytic import FogAnalyticConfig
 
     physical = variant == "physical"
-    rain = not physical and VARIANTS[variant].streak_radiance is not None
-    conditions = ConditionsConfig(precip_mm_h=22.0 if rain else 0.0, visibility_m=200.0 if physical else 300.0)
-    family, kinds = ("physical" if physical else "independent"), ("rain+fog" if rain else "fog")
+    if physical:
+        family, kinds, conditions = "physical", "fog", ConditionsConfig(precip_mm_h=0.0, visibility_m=200.0)
+    else:
+        family, (kinds, conditions) = "independent", probe_weather(VARIANTS[variant])
     with tempfile.TemporaryDirectory() as tmp, nullcontext() if physical else drawing(VARIANTS[variant]):
         fog = FogAnalyticConfig(layered=layered)
         trainer = blind_config(Path(tmp), 160, steps, kinds, family, conditions, fog_analytic=fog).setup()

@@ -179,15 +179,22 @@ def blind_config(output_dir: Path, size: int, steps: int, kinds: str, family: st
     )
 
 
+def probe_weather(variant: Variant):
+    """The weather a probe of ``variant`` degrades with and trains under: 22 mm/h where it draws streaks, 300 m where
+    it draws fog -> (kinds, ConditionsConfig)."""
+    from metegs.weather.conditions import ConditionsConfig
+
+    rain = variant.streak_radiance is not None
+    kinds = "+".join(k for k, on in (("rain", rain), ("fog", variant.fog)) if on)
+    return kinds, ConditionsConfig(precip_mm_h=22.0 if rain else 0.0, visibility_m=300.0 if variant.fog else None)
+
+
 def probe(variant_name: str, size: int, steps: int) -> dict:
     """Blind MeteGS and 3dgs on the built-in scene under ``variant_name`` -> their metrics and MeteGS's decisions."""
     from metegs.engine.compare import train_baseline
-    from metegs.weather.conditions import ConditionsConfig
 
     variant = VARIANTS[variant_name]
-    rain = variant.streak_radiance is not None
-    kinds = "+".join(k for k, on in (("rain", rain), ("fog", variant.fog)) if on)
-    conditions = ConditionsConfig(precip_mm_h=22.0 if rain else 0.0, visibility_m=300.0 if variant.fog else None)
+    kinds, conditions = probe_weather(variant)
     with tempfile.TemporaryDirectory() as tmp, drawing(variant):
         config = blind_config(Path(tmp), size, steps, kinds, "independent", conditions)
         trainer = config.setup()
