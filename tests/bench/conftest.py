@@ -12,8 +12,10 @@ BENCHMARKS = Path(__file__).resolve().parents[2] / "benchmarks"
 
 
 @pytest.fixture
-def benchmark_script():
-    """``load(name)``: the module of ``benchmarks/<name>.py`` (the scripts are not a package)."""
+def benchmark_script(monkeypatch):
+    """``load(name)``: the module of ``benchmarks/<name>.py`` (the scripts are not a package; they import each other
+    as siblings, so ``benchmarks/`` is on the path while a test runs)."""
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
 
     def load(name: str):
         spec = importlib.util.spec_from_file_location(name, BENCHMARKS / f"{name}.py")
