@@ -4,9 +4,10 @@
 
 `physical` is metegs's own fog of 200 m (uniform); the others are the third generator's variants with fog, under
 `benchmarks/other_generator.py probe`'s weather (300 m, and 22 mm/h where the variant draws streaks). Each variant
-trains twice as the CI weather-removal test does (24 views at 160×120, every 6th held out): once as decided (`fog-analytic layers`, which learns a profile from uniform where the points read
-the fog denser upwards) and once with `--fog-analytic.no-layered`, and prints one JSON line per run: PSNR / SSIM on the
-clean test views, the learnt β and scale height, and the layers decision.
+trains twice as the CI weather-removal test does (24 views at 160×120, every 6th held out): once as decided
+(`fog-analytic layers`, which learns a profile from uniform where the points read the fog denser upwards) and once
+with `--fog-analytic.no-layered`, and prints one JSON line per run: PSNR / SSIM on the clean test views, the learnt β
+and scale height, and the layers decision.
 """
 
 from __future__ import annotations
@@ -25,12 +26,12 @@ def run(variant: str, layered: bool, steps: int) -> dict:
     from metegs.weather.conditions import ConditionsConfig
     from metegs.weather.fog_analytic import FogAnalyticConfig
 
-    physical = variant == "physical"
-    if physical:
+    other = None if variant == "physical" else VARIANTS[variant]  # the third generator's, or metegs's own fog
+    if other is None:
         family, kinds, conditions = "physical", "fog", ConditionsConfig(precip_mm_h=0.0, visibility_m=200.0)
     else:
-        family, (kinds, conditions) = "independent", probe_weather(VARIANTS[variant])
-    with tempfile.TemporaryDirectory() as tmp, nullcontext() if physical else drawing(VARIANTS[variant]):
+        family, (kinds, conditions) = "independent", probe_weather(other)
+    with tempfile.TemporaryDirectory() as tmp, nullcontext() if other is None else drawing(other):
         fog = FogAnalyticConfig(layered=layered)
         trainer = blind_config(Path(tmp), 160, steps, kinds, family, conditions, fog_analytic=fog).setup()
         metrics = trainer.train()

@@ -45,9 +45,7 @@ def test_a_fog_it_does_not_have_is_named_with_the_choices(fog_layers, monkeypatc
 
 
 class _Trainer:
-    def __init__(self, config):
-        self.config = config
-        self.decisions = {"fog-analytic layers": "on: stubbed"}
+    decisions = {"fog-analytic layers": "on: stubbed"}
 
     def setup(self):
         return self
@@ -67,7 +65,7 @@ def test_run_hands_training_the_fog_its_variant_draws(fog_layers, monkeypatch, v
 
     def config(output_dir, size, steps, kinds, family, conditions, **overrides):
         seen.update(size=size, steps=steps, kinds=kinds, family=family, conditions=conditions, **overrides)
-        return _Trainer(None)
+        return _Trainer()
 
     monkeypatch.setattr(fog_layers, "blind_config", config)
     row = fog_layers.run(variant, layered, 30)
