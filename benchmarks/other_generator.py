@@ -121,13 +121,24 @@ def drawn_by(weather: dict) -> str | None:
 def guarded_cells(variant_name: str):
     """Within the block the suite's `family: independent` cells are drawn by ``variant_name``, and a cell whose photos
     are already on disk must have been drawn by it too: the suite reuses a cell's photos, so photos of the independent
-    family or of another variant would otherwise be reported as this variant's."""
+    family or of another variant would otherwise be reported as this variant's. A cell whose weather the variant does
+    not draw (`fog` under rain + fog, `rain` under fog) is refused as well."""
     from metegs.bench import data
 
     original = data.degraded_dataset
 
+    variant = VARIANTS[variant_name]
+    draws = {kind for kind, on in (("rain", variant.streak_radiance is not None), ("fog", variant.fog)) if on}
+
     def degraded_dataset(target, *args, **kwargs):
         condition = inspect.signature(original).bind(target, *args, **kwargs).arguments["condition"]
+        missing = sorted(set(condition.kind.split("+")) - draws)
+        if condition.family == "independent" and missing:
+            raise SystemExit(
+                f"condition {condition.name!r} is {condition.kind}, but the {variant_name!r} variant draws no "
+                f"{' and no '.join(missing)}: training's θ would expect weather its photos lack; pick its cells with "
+                "--only-conditions"
+            )
         done = Path(target) / "weather.json"
         if condition.family == "independent" and done.is_file():
             found = drawn_by(json.loads(done.read_text()))
@@ -142,7 +153,7 @@ def guarded_cells(variant_name: str):
     # the suite imports `degraded_dataset` each time it degrades a cell (`SuiteRunner._degraded`), so this reaches it
     data.degraded_dataset = degraded_dataset
     try:
-        with drawing(VARIANTS[variant_name], variant_name):
+        with drawing(variant, variant_name):
             yield
     finally:
         data.degraded_dataset = original

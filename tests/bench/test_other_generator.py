@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 
 import numpy as np
 import pytest
@@ -88,7 +89,8 @@ def test_a_suite_cell_drawn_by_another_generator_is_refused(benchmark_script, tm
     for name, views in cells.items():
         (tmp_path / name).mkdir()
         (tmp_path / name / "weather.json").write_text(json.dumps({"views": views}))
-    independent, physical = SimpleNamespace(family="independent"), SimpleNamespace(family="physical")
+    independent = SimpleNamespace(name="rain-heavy-other", kind="rain", family="independent")
+    physical = SimpleNamespace(name="rain+fog", kind="rain+fog", family="physical")
     original = data.degraded_dataset
     with g.guarded_cells("rain"):
         for refused in ("independent", "smog"):
@@ -109,3 +111,23 @@ def test_a_suite_cell_drawn_by_another_generator_is_refused(benchmark_script, tm
     suite_scene = SimpleNamespace(name="s", data=None, parser=None, in_memory=True, synth=None)
     with g.guarded_cells("rain"), pytest.raises(SystemExit, match="not by 'rain'"):
         SuiteRunner._degraded(runner, suite_scene, independent, tmp_path / "cell", None, None)
+
+
+@pytest.mark.parametrize(
+    ("variant", "kind", "missing"),
+    [("rain", "fog", "fog"), ("rain", "rain+fog", "fog"), ("fog", "rain+fog", "rain"), ("fog", "rain", "rain")],
+)
+def test_a_suite_cell_whose_weather_the_variant_does_not_draw_is_refused(
+    benchmark_script, tmp_path, variant, kind, missing
+):
+    """The variant draws only the cell's kinds it has (`engine_view`), so a cell asking for more would train under a θ
+    whose weather its photos lack: refused before anything is drawn, naming the condition."""
+    from types import SimpleNamespace
+
+    from metegs.bench import data
+
+    g = benchmark_script("other_generator")
+    cell = SimpleNamespace(name="the-cell", kind=kind, family="independent")
+    with g.guarded_cells(variant), pytest.raises(SystemExit, match=re.escape(f"'the-cell' is {kind}, ")) as refused:
+        data.degraded_dataset(tmp_path / "cell", None, None, cell, None, 0)
+    assert f"variant draws no {missing}:" in str(refused.value) and not (tmp_path / "cell").exists()

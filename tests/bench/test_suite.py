@@ -38,6 +38,9 @@ def test_the_shipped_suites_parse():
     other = load_suite(REPO / "configs/bench/real-other.yaml")  # the same captures under a third generator's rain
     assert [(s.name, s.data, s.train) for s in other.scenes] == [(s.name, s.data, s.train) for s in real.scenes]
     assert all(c.family == "independent" for c in other.conditions)  # benchmarks/other_generator.py draws them all
+    other_fog = load_suite(REPO / "configs/bench/real-other-fog.yaml")  # the fox and Lund under its fog and smog
+    assert [(s.name, s.data, s.train) for s in other_fog.scenes] == [(s.name, s.data, s.train) for s in real.scenes[1:]]
+    assert [(c.kind, c.family) for c in other_fog.conditions] == [("fog", "independent"), ("rain+fog", "independent")]
 
 
 def _minimal(**extra):
