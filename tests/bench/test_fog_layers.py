@@ -61,14 +61,18 @@ class _Trainer:
 @pytest.mark.parametrize("variant", ["physical", "smog"])
 @pytest.mark.parametrize("layered", [True, False])
 def test_run_hands_training_the_fog_its_variant_draws(fog_layers, monkeypatch, variant, layered):
-    seen = {}
+    from metegs.engine.metegs_trainer import MeteGSTrainer
+
+    measure, seen = MeteGSTrainer._points_layers, {}
 
     def config(output_dir, size, steps, kinds, family, conditions, **overrides):
         seen.update(size=size, steps=steps, kinds=kinds, family=family, conditions=conditions, **overrides)
+        seen["profile_from_uniform"] = MeteGSTrainer._points_layers is not measure
         return _Trainer()
 
     monkeypatch.setattr(fog_layers, "blind_config", config)
     row = fog_layers.run(variant, layered, 30)
+    assert seen["profile_from_uniform"] is layered and MeteGSTrainer._points_layers is measure
     assert json.loads(json.dumps(row)) == {
         "variant": variant,
         "layered": layered,
@@ -86,3 +90,19 @@ def test_run_hands_training_the_fog_its_variant_draws(fog_layers, monkeypatch, v
         kinds, conditions = fog_layers.probe_weather(fog_layers.VARIANTS[variant])
         assert (seen["family"], seen["kinds"], seen["conditions"]) == ("independent", kinds, conditions)
         assert kinds == "rain+fog"
+
+
+@pytest.mark.parametrize(("read", "learnt_from"), [(-2.0, 0.0), (0.0, 0.0), (2.0, 2.0), (None, None)])
+def test_profile_from_uniform_reads_a_fog_denser_upwards_as_uniform(fog_layers, monkeypatch, read, learnt_from):
+    """Inside `profile_from_uniform` a profile the points read denser upwards starts uniform (and so is learnt), one
+    thinning upwards starts where they read it, and no reading stays none; outside, the reading is as measured."""
+    from metegs.engine.metegs_trainer import MeteGSTrainer
+    from metegs.weather.medium_fit import MediumFit
+
+    fit = None if read is None else MediumFit(0.02, read, (0.8, 0.8, 0.8), observations=10, points=5)
+    monkeypatch.setattr(MeteGSTrainer, "_points_layers", lambda self, fog: fit)
+    with fog_layers.profile_from_uniform():
+        inside = MeteGSTrainer._points_layers(None, None)
+    assert (None if inside is None else inside.height_rate) == learnt_from
+    assert inside is None or inside.beta_per_m == 0.02
+    assert MeteGSTrainer._points_layers(None, None) is fit
