@@ -593,7 +593,7 @@ class MeteGSTrainer(Trainer):
             self.decide(
                 f"{name} layers",
                 f"off: the points read the fog denser upwards (scale height {100.0 / fit.height_rate:.0f} m), as they "
-                "read every uniform fog measured and as no fog over the ground is, so β is one at every height",
+                "read every uniform fog measured, which no fog over the ground does, so β is one at every height",
             )
         else:
             fog.learn_layers()
@@ -744,9 +744,9 @@ class MeteGSTrainer(Trainer):
     def _points_layers(self, fog: FogAnalytic) -> MediumFit | None:
         """Where β is held at the points' measure, the layered medium that the same observations show under the same
         airlight (`fit_medium`), else None. Where that reads denser upwards, as every uniform fog measured read (scale
-        heights −105 to −1148 m) and no fog over the ground is, β stays one at every height: learnt from uniform there,
-        the profile cost the real captures 0.49 dB on average over ten runs (−0.06 to +1.65: metegs's own fog on the
-        Lund street and the fox, its rain + fog on the fox and the third generator's fog on both, two seeds each),
+        heights −105 to −1148 m), which no fog over the ground does, β stays one at every height: learnt from uniform
+        there, the profile cost the real captures 0.49 dB on average over ten runs (−0.06 to +1.65: metegs's own fog on
+        the Lund street and the fox, its rain + fog on the fox and the third generator's fog on both, two seeds each),
         though on the built-in scene, whose dome past 200 m it fogs more, it paid 0.74 dB in metegs's own fog and 1.70
         under the third generator's smog (`benchmarks/fog_layers.py`)."""
         if fog.measured_beta is None or (obs := self._medium_observations) is None:
