@@ -45,6 +45,11 @@ class Variant:
     fog: bool = True
     angle_deg: float = 15.0
 
+    @property
+    def kinds(self) -> tuple[str, ...]:
+        """The weather kinds it draws, in `degrade`'s order (``("rain", "fog")``, ``("fog",)`` …)."""
+        return tuple(k for k, on in (("rain", self.streak_radiance is not None), ("fog", self.fog)) if on)
+
 
 VARIANTS = {
     "smog": Variant((0.72, 0.70, 0.62), 0.85),
@@ -125,14 +130,11 @@ def guarded_cells(variant_name: str):
     not draw (`fog` under rain + fog, `rain` under fog) is refused as well."""
     from metegs.bench import data
 
-    original = data.degraded_dataset
-
-    variant = VARIANTS[variant_name]
-    draws = {kind for kind, on in (("rain", variant.streak_radiance is not None), ("fog", variant.fog)) if on}
+    original, variant = data.degraded_dataset, VARIANTS[variant_name]
 
     def degraded_dataset(target, *args, **kwargs):
         condition = inspect.signature(original).bind(target, *args, **kwargs).arguments["condition"]
-        missing = sorted(set(condition.kind.split("+")) - draws)
+        missing = sorted(set(condition.kind.split("+")) - set(variant.kinds))
         if condition.family == "independent" and missing:
             raise SystemExit(
                 f"condition {condition.name!r} is {condition.kind}, but the {variant_name!r} variant draws no "
@@ -195,9 +197,10 @@ def probe_weather(variant: Variant):
     it draws fog -> (kinds, ConditionsConfig)."""
     from metegs.weather.conditions import ConditionsConfig
 
-    rain = variant.streak_radiance is not None
-    kinds = "+".join(k for k, on in (("rain", rain), ("fog", variant.fog)) if on)
-    return kinds, ConditionsConfig(precip_mm_h=22.0 if rain else 0.0, visibility_m=300.0 if variant.fog else None)
+    rain = "rain" in variant.kinds
+    return "+".join(variant.kinds), ConditionsConfig(
+        precip_mm_h=22.0 if rain else 0.0, visibility_m=300.0 if variant.fog else None
+    )
 
 
 def probe(variant_name: str, size: int, steps: int) -> dict:
