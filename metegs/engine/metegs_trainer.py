@@ -57,6 +57,7 @@ from metegs.weather.medium import (
 from metegs.weather.medium_fit import (
     MediumFit,
     PointObservations,
+    airlight_under_haze,
     fit_medium,
     fit_uniform_medium,
     point_observations,
@@ -851,13 +852,35 @@ class MeteGSTrainer(Trainer):
             self.dehazing.append(fog)
             # as He et al. estimate A once: a free A drifts down while a pale scene takes the haze in (head, fog)
             fog.airlight_logit.requires_grad_(False)
-            airlight = ", ".join(f"{float(a):.2f}" for a in fog.airlight)
             why += (
                 f"; weight {c.weight:g}: the photos dehazed by the medium keep {c.quantile:.0%} of their dark channel "
-                f"at zero, as clear views do, under the airlight estimated at the start ({airlight}), held"
+                f"at zero, as clear views do, under {self._dehazing_airlight(fog)}, held"
             )
         self.decide("dark channel prior", why)
         return on
+
+    def _dehazing_airlight(self, fog: FogAnalytic) -> str:
+        """Under the dark-channel prior, the airlight ``fog`` holds, in words: the one estimated at the start (the
+        photos' brightest haze), lowered to what the scene's points fit along with β where a medium explains enough of
+        their colours (`airlight_under_haze`, `MIN_MEDIUM_EXPLAINED`) and the config and θ give none. Held at the
+        estimate, the fox under the third generator's smog, which starts from a plane sweep, scored 14.78 dB (the
+        restoration 13.96); at its points' fit, 20.37."""
+        start = fog.airlight.detach().cpu()
+        estimated = ", ".join(f"{float(a):.2f}" for a in start)
+        if fog.config.airlight is not None or self.weather_theta(self.scene).fog.airlight_rgb is not None:
+            return f"the airlight given ({estimated})"
+        if (obs := self._medium_observations) is None:
+            return f"the airlight estimated at the start ({estimated})"
+        with self.status("fitting the airlight at the scene's points"):
+            held = airlight_under_haze(start, obs, MIN_MEDIUM_EXPLAINED)
+        if not bool((held < start).any()):
+            return f"the airlight estimated at the start ({estimated}), which the scene's points leave as it is"
+        fog.set_airlight(held)
+        lowered = ", ".join(f"{float(a):.2f}" for a in held)
+        return (
+            f"the airlight ({lowered}) that the scene's points fit along with β, darker than the photos' brightest "
+            f"haze ({estimated})"
+        )
 
     def _build_gtn(self):
         from metegs.models.gtn import GaussianTransformationNetwork

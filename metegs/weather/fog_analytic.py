@@ -196,6 +196,11 @@ class FogAnalytic(WeatherModel):
             self.height_rate.fill_(height_rate)
         self.measured_beta = beta_per_m
 
+    def set_airlight(self, airlight: torch.Tensor) -> None:
+        """Put the airlight at ``airlight`` [3] in (0, 1) (whether it learns on is left as it is)."""
+        with torch.no_grad():
+            self.airlight_logit.copy_(torch.logit(airlight.float().clamp(1e-3, 1 - 1e-3)).to(self.airlight_logit))
+
     def learn_layers(self) -> bool:
         """Let β change with height from now on, when ``layered`` and ``learnable`` allow it -> whether it does."""
         if not (self.config.layered and self.config.learnable):

@@ -235,6 +235,15 @@ def test_the_dark_channel_prior_holds_the_fog_where_blind_photos_cannot_measure_
     assert (
         "but the medium's optical depth at the scene's typical depth is" in unmeasured.decisions["dark channel prior"]
     )
+    # held under the airlight estimated at the start, lowered where the scene's points fit it darker
+    held = next(m for m in unmeasured.weather_models if m.name == "fog-analytic")
+    words = ", ".join(f"{float(a):.2f}" for a in held.airlight)
+    lowered = f"under the airlight ({words}) that the scene's points fit along with β, darker than the photos'"
+    estimated = f"under the airlight estimated at the start ({words}), which the scene's points leave as it is"
+    assert (lowered in unmeasured.decisions["dark channel prior"]) != (
+        estimated in unmeasured.decisions["dark channel prior"]
+    )
+    assert not held.airlight_logit.requires_grad
     monkeypatch.undo()
     # heavy rain through it keeps the record prior (the Lund street, independent rain + fog: 12.34 dB, 11.98 with it)
     rainy = tiny_metegs(

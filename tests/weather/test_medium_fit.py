@@ -9,6 +9,7 @@ from metegs.engine.metegs_trainer import MIN_AIRLIGHT_OUTSHINES, MIN_VEIL_Z
 from metegs.weather.fog_analytic import height_profile
 from metegs.weather.medium_fit import (
     PointObservations,
+    airlight_under_haze,
     fit_medium,
     fit_uniform_medium,
     point_observations,
@@ -195,3 +196,37 @@ def test_a_view_in_which_a_nearer_patch_hides_a_point_does_not_observe_it():
     assert torch.allclose(seen_from, (plane[centre] - poses[1, :3, 3]).norm()[None])
     patch_centre = len(plane) + int(patch.norm(dim=1).argmin())
     assert (obs.point == patch_centre).sum() == 2
+
+
+def haze_over_a_white_wall(seed: int = 0) -> tuple[PointObservations, torch.Tensor]:
+    """300 points seen from 8 distances each (20-200 m, β 0.02/m) under airlight (0.72, 0.70, 0.62), a sixth of them
+    white (0.95), brighter than it, as the fox's wallpaper is -> (observations, airlight)."""
+    g = torch.Generator().manual_seed(seed)
+    points, views = 300, 8
+    point = torch.arange(points).repeat_interleave(views)
+    distance = 20.0 + 180.0 * torch.rand(points * views, generator=g)
+    t = torch.exp(-0.02 * distance)[:, None]
+    albedo = torch.rand(points, 3, generator=g) * 0.6
+    albedo[::6] = 0.95
+    airlight = torch.tensor([0.72, 0.70, 0.62])
+    zeros = torch.zeros(points * views)
+    return PointObservations(point, albedo[point] * t + airlight * (1 - t), distance, zeros, zeros), airlight
+
+
+def test_the_points_lower_a_brightest_haze_that_a_white_surface_lifts_over_the_airlight():
+    """`airlight_under_haze`: where a white surface lifts the brightest haze over the airlight, the airlight that the
+    points fit along with β replaces it (within 0.02), and β under it is the medium's, where under the haze it reads a
+    fifth too thin; a haze darker than that fit is kept channel by channel, as the fit only trades the airlight against
+    β above it; without observations, or through clear air, the haze is all there is."""
+    obs, airlight = haze_over_a_white_wall()
+    lifted = torch.tensor([0.79, 0.78, 0.74])
+    lowered = airlight_under_haze(lifted, obs)
+    assert torch.allclose(lowered, airlight, atol=0.02)
+    assert abs(fit_uniform_medium(obs, airlight=lowered).beta_per_m - 0.02) < 0.05 * 0.02
+    assert fit_uniform_medium(obs, airlight=lifted).beta_per_m < 0.8 * 0.02
+    darker = torch.tensor([0.70, 0.72, 0.60])
+    kept = airlight_under_haze(darker, obs)
+    assert kept[0] == darker[0] and kept[2] == darker[2] and abs(float(kept[1]) - 0.70) < 0.02
+    assert airlight_under_haze(lifted, None) is lifted
+    clear, _ = uniform_observations(0.0, seed=1)  # no medium: its airlight says nothing
+    assert airlight_under_haze(lifted, clear) is lifted

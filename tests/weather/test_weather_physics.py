@@ -308,3 +308,14 @@ def test_distance_spread_is_the_median_far_over_near_ratio_of_points_seen_twice(
     assert distance_spread(cams([0.0, 2.0]), None) is None
     seen = cams([0.0, 5.0]).sees(points)  # the second view has the first point behind it
     assert seen.tolist() == [[True, True, True], [False, True, True]]
+
+
+def test_the_airlight_is_put_where_it_is_asked_and_learns_as_it_did():
+    """`FogAnalytic.set_airlight` puts the airlight at the one given, clamped into (0, 1), and leaves whether it
+    learns as it was."""
+    theta = theta_from_values(0.0, visibility_m=300.0, fog_kind="fog", camera=spec())
+    fog = FogAnalytic(FogAnalyticConfig(airlight=(0.9, 0.9, 0.9)), theta, weather_scene())
+    fog.airlight_logit.requires_grad_(False)
+    fog.set_airlight(torch.tensor([0.72, 0.70, 1.0]))
+    assert torch.allclose(fog.airlight, torch.tensor([0.72, 0.70, 0.999]), atol=1e-5)
+    assert not fog.airlight_logit.requires_grad
