@@ -322,7 +322,7 @@ def fit_uniform_medium(
 
 
 def airlight_under_haze(
-    brightest_haze: torch.Tensor, obs: PointObservations | None, min_explained: float = 0.05
+    brightest_haze: torch.Tensor, obs: PointObservations | None, min_explained: float
 ) -> torch.Tensor:
     """``brightest_haze`` [3] (the photos' dark-channel estimate) lowered channel by channel to the airlight that
     ``obs`` fit along with β (`fit_uniform_medium`) where that is darker and the fitted medium explains at least

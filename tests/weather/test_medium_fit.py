@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 
 from metegs.cameras import Cameras
-from metegs.engine.metegs_trainer import MIN_AIRLIGHT_OUTSHINES, MIN_VEIL_Z
+from metegs.engine.metegs_trainer import MIN_AIRLIGHT_OUTSHINES, MIN_MEDIUM_EXPLAINED, MIN_VEIL_Z
 from metegs.weather.fog_analytic import height_profile
 from metegs.weather.medium_fit import (
     PointObservations,
@@ -220,13 +220,13 @@ def test_the_points_lower_a_brightest_haze_that_a_white_surface_lifts_over_the_a
     β above it; without observations, or through clear air, the haze is all there is."""
     obs, airlight = haze_over_a_white_wall()
     lifted = torch.tensor([0.79, 0.78, 0.74])
-    lowered = airlight_under_haze(lifted, obs)
+    lowered = airlight_under_haze(lifted, obs, MIN_MEDIUM_EXPLAINED)
     assert torch.allclose(lowered, airlight, atol=0.02)
     assert abs(fit_uniform_medium(obs, airlight=lowered).beta_per_m - 0.02) < 0.05 * 0.02
     assert fit_uniform_medium(obs, airlight=lifted).beta_per_m < 0.8 * 0.02
     darker = torch.tensor([0.70, 0.72, 0.60])
-    kept = airlight_under_haze(darker, obs)
+    kept = airlight_under_haze(darker, obs, MIN_MEDIUM_EXPLAINED)
     assert kept[0] == darker[0] and kept[2] == darker[2] and abs(float(kept[1]) - 0.70) < 0.02
-    assert airlight_under_haze(lifted, None) is lifted
+    assert airlight_under_haze(lifted, None, MIN_MEDIUM_EXPLAINED) is lifted
     clear, _ = uniform_observations(0.0, seed=1)  # no medium: its airlight says nothing
-    assert airlight_under_haze(lifted, clear) is lifted
+    assert airlight_under_haze(lifted, clear, MIN_MEDIUM_EXPLAINED) is lifted
