@@ -85,8 +85,9 @@ fog is trusted."""
 MIN_MEDIUM_EXPLAINED = 0.05
 """Share of clear air's robust loss at the scene's points that a uniform medium must explain (`MediumFit.explained`)
 for blind training to hold β at that measure, and for the dark-channel prior's airlight to take their fit
-(`_dehazing_airlight`); under it the veil is too thin to measure there and β learns in training. Fog: 14-49 % (the built-in scene, the Lund street, the fox); thin veils 0.4-2.4 %, whose measure missed
-(the fox's rain veil: 1.63e-3/m against 2.45e-3, 25.30 dB held there, 29.70 learnt in training)."""
+(`_dehazing_airlight`); under it the veil is too thin to measure there and β learns in training. Fog: 14-51 % (the
+built-in scene, the Lund street, the fox); thin veils 0.4-2.4 %, whose measure missed (the fox's rain veil: 1.63e-3/m
+against 2.45e-3, 25.30 dB held there, 29.70 learnt in training)."""
 
 MIN_VEIL_Z = 2.0
 """How many standard errors better than clear air the rain's veil must explain the colours at the scene's points
