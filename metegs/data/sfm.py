@@ -64,9 +64,11 @@ class SfmOptions:
     min_registered: int = 3
     """Fewer registered views than this is an error."""
     num_threads: int = -1
-    """CPU threads for COLMAP (-1: all)."""
+    """CPU threads for COLMAP's feature extraction (with one camera) and matching (-1: all); poses are mapped on one,
+    as on several the same matches mapped differently from run to run."""
     seed: int = 0
-    """Random seed of the mapper (RANSAC, initial pair), for reproducible poses."""
+    """Random seed of the matching's and the mapper's RANSAC and of the mapper's initial pair: the same photos and
+    seed give the same poses on any number of threads."""
 
 
 @dataclass
@@ -191,7 +193,11 @@ def _quiet(pycolmap) -> None:
 def _extract(
     pycolmap, db: Path, images: Path, names: list[str], masks: Path | None, opts: SfmOptions, progress: StageCallback
 ) -> None:
-    """SIFT features of every photo into ``db`` (none where ``masks`` are black), in chunks to show progress."""
+    """SIFT features of every photo into ``db`` (none where ``masks`` are black), the photos numbered in the order of
+    ``names``. COLMAP numbers the photos of one call as its threads finish them, and that numbering steers matching
+    and mapping, so that the same photos posed differently from run to run (the Lund street's 29: 27, 28 or 29
+    registered). With one camera the first photo makes it and the others are entered in order beforehand
+    (`_enter_in_order`), then extracted on every thread; with a camera per photo they are extracted one by one."""
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = opts.camera_model
     if masks is not None:
@@ -205,37 +211,74 @@ def _extract(
     extraction.sift.estimate_affine_shape = opts.accurate_features
     extraction.sift.domain_size_pooling = opts.accurate_features
     mode = pycolmap.CameraMode.SINGLE if opts.single_camera else pycolmap.CameraMode.PER_IMAGE
-    chunk = 8
-    for start in range(0, len(names), chunk):
+
+    def extract(batch: list[str]) -> None:
         pycolmap.extract_features(
             db,
             images,
-            image_names=names[start : start + chunk],
+            image_names=batch,
             camera_mode=mode,
             reader_options=reader,
             extraction_options=extraction,
             device=pycolmap.Device.cpu,
         )
-        if opts.single_camera and start == 0:
-            reader.existing_camera_id = 1  # later chunks share the first chunk's camera
+
+    extract(names[:1])
+    progress("extract", 1, len(names))
+    if opts.single_camera:
+        reader.existing_camera_id = _enter_in_order(pycolmap, db, names[1:])
+        chunk = 8  # the photos are numbered already: a chunk shows progress
+    else:
+        chunk = 1
+    for start in range(1, len(names), chunk):
+        extract(names[start : start + chunk])
         progress("extract", min(start + chunk, len(names)), len(names))
 
 
+def _enter_in_order(pycolmap, db: Path, names: list[str]) -> int:
+    """Enter ``names`` into ``db`` in that order, each a frame of the rig of the camera that ``db``'s one photo made,
+    as COLMAP's extraction enters a photo of that camera; returns the camera's id."""
+    database = pycolmap.Database.open(db)
+    try:
+        (camera,) = database.read_all_cameras()
+        (rig,) = database.read_all_rigs()
+        for name in names:
+            image_id = database.write_image(pycolmap.Image(name=name, camera_id=camera.camera_id))
+            frame = pycolmap.Frame(rig_id=rig.rig_id)
+            sensor = pycolmap.sensor_t(type=pycolmap.SensorType.CAMERA, id=camera.camera_id)
+            frame.add_data_id(pycolmap.data_t(sensor_id=sensor, id=image_id))
+            database.write_frame(frame)
+    finally:
+        database.close()
+    return camera.camera_id
+
+
 def _match(pycolmap, db: Path, count: int, opts: SfmOptions, progress: StageCallback) -> str:
-    """Match feature pairs with geometric verification; returns the matcher used."""
+    """Match feature pairs with geometric verification (its RANSAC seeded with ``opts.seed``, so that every pair
+    verifies the same on any number of threads); returns the matcher used."""
     matcher = opts.matcher
     if matcher == "auto":
         matcher = "exhaustive" if count <= EXHAUSTIVE_LIMIT else "sequential"
     matching = pycolmap.FeatureMatchingOptions()
     matching.num_threads = opts.num_threads
     matching.guided_matching = opts.accurate_features
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.ransac.random_seed = opts.seed
     progress("match", 0, 1)
     if matcher == "exhaustive":
-        pycolmap.match_exhaustive(db, matching_options=matching, device=pycolmap.Device.cpu)
+        pycolmap.match_exhaustive(
+            db, matching_options=matching, verification_options=verification, device=pycolmap.Device.cpu
+        )
     else:
         pairing = pycolmap.SequentialPairingOptions()
         pairing.overlap = opts.sequential_overlap
-        pycolmap.match_sequential(db, matching_options=matching, pairing_options=pairing, device=pycolmap.Device.cpu)
+        pycolmap.match_sequential(
+            db,
+            matching_options=matching,
+            pairing_options=pairing,
+            verification_options=verification,
+            device=pycolmap.Device.cpu,
+        )
     progress("match", 1, 1)
     return matcher
 
@@ -256,7 +299,7 @@ def _map(
     if forward:
         mapping.mapper.init_max_forward_motion = 1.0
         mapping.mapper.init_min_tri_angle = FORWARD_INIT_TRI_ANGLE_DEG
-    mapping.num_threads = opts.num_threads
+    mapping.num_threads = 1  # on several threads the same matches mapped to different poses from run to run
     mapping.random_seed = opts.seed
     relax = opts.min_inliers / 30.0  # relative to COLMAP's defaults
     mapping.min_num_matches = min(15, opts.min_inliers)
