@@ -64,10 +64,8 @@ class SfmOptions:
     min_registered: int = 3
     """Fewer registered views than this is an error."""
     num_threads: int = -1
-    """CPU threads for COLMAP's feature extraction (with one camera) and matching (-1: all); poses are mapped on one,
-    as on several the same matches mapped differently from run to run. On several the matcher's approximate search
-    differs now and then (the Lund street's raw matches in 3 of 5 runs, its poses in 1 of 7); 1 gives the same poses
-    every run."""
+    """CPU threads for COLMAP's feature extraction and matching (-1: all; poses are mapped on one). Only 1 gives the
+    same poses every run: on several the matcher's approximate search differs now and then (Lund: 1 run in 7)."""
     seed: int = 0
     """Random seed of the matching's and the mapper's RANSAC and of the mapper's initial pair."""
 
