@@ -241,10 +241,10 @@ def _enter_in_order(pycolmap, db: Path, names: list[str]) -> int:
     try:
         (camera,) = database.read_all_cameras()
         (rig,) = database.read_all_rigs()
+        sensor = pycolmap.sensor_t(type=pycolmap.SensorType.CAMERA, id=camera.camera_id)
         for name in names:
             image_id = database.write_image(pycolmap.Image(name=name, camera_id=camera.camera_id))
             frame = pycolmap.Frame(rig_id=rig.rig_id)
-            sensor = pycolmap.sensor_t(type=pycolmap.SensorType.CAMERA, id=camera.camera_id)
             frame.add_data_id(pycolmap.data_t(sensor_id=sensor, id=image_id))
             database.write_frame(frame)
     finally:
