@@ -8,8 +8,9 @@ geometric verification (sequential matching beyond 200 views; the `metegs-proces
 `metegs.data.sfm`), then
 ``pycolmap.triangulate_points`` with the cameras held fixed. Test views are never used. The points are
 cached in ``<scene>/.metegs_points/points-<key>.npz``; the key covers the photos (path, size, mtime),
-the cameras and the pycolmap version, so a changed photo or pose triangulates again. A triangulation that finds
-too few points is cached as well, so that a second run on the same photos falls back to random points at once.
+the cameras, the pycolmap version and `PIPELINE_VERSION`, so a changed photo, pose or pipeline triangulates
+again. A triangulation that finds too few points is cached as well, so that a second run on the same photos falls
+back to random points at once.
 """
 
 from __future__ import annotations
@@ -37,6 +38,10 @@ MIN_POINTS = 100
 
 MAX_FEATURES = 4096
 """SIFT features per photo that triangulation extracts (at up to 1600 px, as metegs-process-images)."""
+
+PIPELINE_VERSION = "triangulate-2"
+"""Part of the cache key beside pycolmap's version: a change to the pipeline that changes its points changes this
+(2: photos numbered in file order and a seeded geometric verification, which made the points the same every run)."""
 
 
 @dataclass
@@ -189,7 +194,7 @@ def triangulate_known_poses(
         options = f"{opts.max_image_size}|{opts.max_features}"
         if opts.peak_threshold > 0:  # the caches of the default threshold keep their keys
             options += f"|{opts.peak_threshold:.6g}"
-        key = cache_key(image_paths, cameras, pycolmap.__version__, options)
+        key = cache_key(image_paths, cameras, f"{pycolmap.__version__}|{PIPELINE_VERSION}", options)
         cache = Path(cache_dir) / f"points-{key}.npz"
         if cache.is_file():
             found = load_points(cache)

@@ -128,6 +128,26 @@ def test_cache_is_reused_and_invalidated_by_a_changed_photo(photographed, tmp_pa
         triangulate_known_poses(paths, cams, tmp_path)
 
 
+def test_a_new_pipeline_version_triangulates_again(photographed, tmp_path, monkeypatch):
+    """Points cached by an earlier pipeline are not served to a run of a changed one."""
+    scene, paths = photographed
+    cams = scene.cameras[list(range(VIEWS))]
+    points = np.random.default_rng(0).normal(size=(MIN_POINTS, 3)).astype(np.float32)
+    calls = []
+
+    def fake(*args, **kwargs):
+        calls.append(1)
+        return tri.TriangulatedPoints(points, np.full_like(points, 0.5), VIEWS, 0.5)
+
+    monkeypatch.setattr(tri, "_triangulate", fake)
+    first = triangulate_known_poses(paths, cams, tmp_path)
+    triangulate_known_poses(paths, cams, tmp_path)
+    assert len(calls) == 1
+    monkeypatch.setattr(tri, "PIPELINE_VERSION", tri.PIPELINE_VERSION + "-next")
+    again = triangulate_known_poses(paths, cams, tmp_path)
+    assert len(calls) == 2 and again.cache != first.cache
+
+
 def test_an_unreadable_cache_is_named_in_a_warning_and_rewritten(photographed, tmp_path, monkeypatch):
     scene, paths = photographed
     cams = scene.cameras[list(range(VIEWS))]
