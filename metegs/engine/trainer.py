@@ -887,6 +887,8 @@ class Trainer:
             self.exposure.load_state_dict(saved["state"])
             self.exposure_optimizer.load_state_dict(saved["optimizer"])
         self.step = int(ckpt["step"])
+        # the degree the last step rendered with: a run resumed at its end evaluates as it did (0 before a step)
+        self.model.active_sh_degree = self.sh_degree_at(max(self.step - 1, 0))
         self.history = list(ckpt.get("history", []))
         self.train_seconds = float(ckpt.get("train_seconds", 0.0))
         self.load_extra_state(ckpt)

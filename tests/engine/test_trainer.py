@@ -95,6 +95,16 @@ def test_resume_from_checkpoint_continues_the_step_count(trained, tmp_path):
     assert metrics["steps"] == 40
 
 
+def test_a_run_resumed_at_its_end_scores_as_it_did(trained, tmp_path):
+    """Resumed from its last checkpoint with nothing left to train, a run evaluates with the SH degree its last step
+    rendered with (it used to render degree 0, a different scene)."""
+    trainer, metrics = trained
+    ckpt = trainer.run_dir / "checkpoints" / f"step-{trainer.step:06d}.ckpt"
+    resumed = replace(tiny_config(tmp_path), load_checkpoint=ckpt).setup()
+    assert resumed.model.active_sh_degree == trainer.model.active_sh_degree > 0
+    assert resumed.train()["psnr"] == pytest.approx(metrics["psnr"], abs=1e-6)
+
+
 def test_load_run_and_eval_cli(trained):
     from metegs.cli.eval import EvalArgs
     from metegs.cli.eval import main as eval_main
