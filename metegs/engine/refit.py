@@ -48,5 +48,10 @@ def refit_clean_scene(trainer):
     )
     for i, image in renders.items():
         refit.dataset.images[i] = image.to(refit.dataset.images[i])
+    refit.decide(
+        "photos",
+        f"the clean renders of the {len(renders)} training views by the {trainer.config.method} run in "
+        f"{trainer.run_dir}, not the photos of `data` (this config.yml trains 3dgs on those)",
+    )
     refit.train()
     return refit

@@ -41,6 +41,8 @@ def test_blind_training_ends_on_3dgs_fitted_to_its_clean_renders(tmp_path, monke
     for i, target in seen["targets"].items():
         assert torch.equal(target, seen["renders"][i]) and not torch.allclose(target, photos[i], atol=0.02)
     refitted = json.loads((trainer.run_dir / REFIT_FOLDER / "metrics.json").read_text())
+    said = json.loads((trainer.run_dir / REFIT_FOLDER / "decisions.json").read_text())["decisions"]["photos"]
+    assert said.startswith("the clean renders of the 10 training views") and str(trainer.run_dir) in said
     assert metrics["num_gaussians"] == refitted["num_gaussians"] == len(trainer.model)
     assert metrics["psnr"] == pytest.approx(refitted["psnr"], abs=1e-6)
     assert metrics["train_seconds"] > refitted["train_seconds"]
