@@ -5,8 +5,9 @@ under the independent 200 m fog its clean renders of the training views score 15
 (the photos DCP restores: 14.34), its test views 12.80 (the restoration's 3DGS: 12.82). Gaussians free to take the
 haze in put the far street too near, and test views that look from where no training photo stood (the walk's ends)
 see it so. The clean renders hold what the weather models took out; 3DGS fitted to them afresh, from the scene's
-points, carried to the test views better there: 0.34 dB on average over the street's six heavy cells, nothing on the
-instant-ngp fox, whose views circle one object (`docs/benchmark.md`, "The clean scene fitted again")."""
+points, carried to the test views better there: 0.34 dB on average over the street's six heavy cells; a trial
+outside the trainer gained nothing on the instant-ngp fox, whose views circle one object (`docs/benchmark.md`, "The
+clean scene fitted again")."""
 
 from __future__ import annotations
 
