@@ -94,20 +94,16 @@ def timed_steps(trainer, warm: int = WARM_STEPS, timed: int = TIMED_STEPS) -> fl
 
 
 def companion_configs(trainer) -> list[TrainConfig]:
-    """The runs the command trains after ``trainer``'s: its refit (`metegs.engine.refit`), the 3dgs baseline and,
-    with clean references, the blind run and the blind run's refit (`compare_baseline`)."""
+    """The runs the command trains after ``trainer``'s: the 3dgs baseline and, with clean references, the blind run
+    (`compare_baseline`)."""
     from metegs.engine.compare import baseline_config
-    from metegs.engine.refit import refit_config
 
     config = trainer.config
-    runs = [refit_config(config)] if getattr(trainer, "refit_on", False) else []
     if not getattr(config, "compare_baseline", False):
-        return runs
-    runs.append(baseline_config(config))
+        return []
+    runs = [baseline_config(config)]
     if getattr(trainer, "use_clean", False):
         runs.append(replace(config, clean_supervision=False, compare_baseline=False))
-        if config.refit and trainer.active_kinds:  # blind, the run takes the same weather out
-            runs.append(refit_config(config))
     return runs
 
 

@@ -120,9 +120,6 @@ class MeteGSConfig(TrainConfig):
     points show it too (`veil_evidence`); 0: the record alone decides."""
     dark_channel: DarkChannelPriorConfig = field(default_factory=DarkChannelPriorConfig)
     """Blind mode: the photos dehazed by the learned medium keep the dark channel of clear views (sets β)."""
-    refit: bool = False
-    """Blind runs that take a weather out: when training ends, 3dgs fitted afresh to the clean renders of the training
-    views becomes the clean scene (`metegs.engine.refit`; 3dgs's time again)."""
     compare_baseline: bool = True
     """After training, train plain `3dgs` on the same photos and print both clean-view metrics."""
 

@@ -17,8 +17,7 @@ import numpy as np
 import torch
 
 from metegs.engine.metegs_config import BLURRED_PRUNE_OPACITY, SHARP_PRUNE_OPACITY, MeteGSConfig
-from metegs.engine.optim import adam, make_optimizers
-from metegs.engine.refit import REFIT_FOLDER, refit_clean_scene
+from metegs.engine.optim import adam
 from metegs.engine.run import surface_depth
 from metegs.engine.trainer import StepRender, Trainer
 from metegs.errors import ConfigError
@@ -161,30 +160,6 @@ class MeteGSTrainer(Trainer):
         self._setup_extra_points()
         self._setup_camera_clearance()
         self.method_optimizers = self._method_optimizers()
-        self.refitted = False
-        """Whether the clean scene is already the refit's (`refit_clean_scene`; kept in checkpoints)."""
-        self.refit_on = self._decide_refit()
-
-    def _decide_refit(self) -> bool:
-        """Whether a fresh 3DGS, fitted to the clean renders of the training views when training ends, becomes the
-        clean scene (`metegs.engine.refit`): asked for, in blind training that takes a weather out (`active_kinds`).
-        Beside clean references the scene is held to them already; where no weather is taken out, the clean renders
-        are the photos' fit."""
-        if not self.config.refit:
-            on, why = False, "off (--refit adds it in blind runs)"
-        elif self.use_clean:
-            on, why = False, "off: the clean references hold the scene"
-        elif not self.active_kinds:
-            on, why = False, "off: no weather is taken out of the photos, so the clean renders are their fit"
-        else:
-            on = True
-            why = (
-                f"on (--refit): when training ends, 3dgs fitted afresh, from the scene's points, to this run's clean "
-                f"renders of its {len(self.dataset.train_indices)} training views ({self.config.max_steps} steps, in "
-                f"{REFIT_FOLDER}/) becomes the clean scene"
-            )
-        self.decide("refit", why)
-        return on
 
     def _triangulation_photos(self) -> tuple[list[Path] | None, list[torch.Tensor], str]:
         """The clean references where the clean branch trains on them: rain streaks, drops and haze take the
@@ -1120,10 +1095,7 @@ class MeteGSTrainer(Trainer):
     def background(self, training: bool) -> torch.Tensor:
         """[3] Where the clean scene is transparent a view looks into the distance, which the fog model shows as
         its airlight A (the weather branch composites A there): with a fog model, clean renders and references
-        use A as background, so that blind training cannot leave the scene see-through. Else, and once the scene is
-        the refit's (`refitted`), which 3dgs trained over it, the configured one."""
-        if getattr(self, "refitted", False):
-            return super().background(training)
+        use A as background, so that blind training cannot leave the scene see-through. Else the configured one."""
         for m in getattr(self, "weather_models", ()):
             airlight = getattr(m, "airlight", None)
             if isinstance(airlight, torch.Tensor):
@@ -1247,22 +1219,8 @@ class MeteGSTrainer(Trainer):
                 save_image(folder / f"{name}_compare.png", torch.cat(row, dim=1))
 
     # --- checkpoints -------------------------------------------------------------------------------
-    def finish(self) -> dict:
-        """The refit where decided (`refit_clean_scene`; once: a resumed run that has it keeps it), then the final
-        evaluation and outputs."""
-        if self.refit_on and not self.refitted:
-            refit = refit_clean_scene(self)
-            self.model = refit.model
-            self.optimizers = make_optimizers(self.model.params, self.config.optim, self.extent)
-            self.densifier.load_state_dict({})  # its statistics were the replaced Gaussians'
-            self.train_seconds += refit.train_seconds
-            self.refitted = True
-            self.save()  # the run reopens (`load_run`, the viewer, a resume) with the clean scene it reports
-        return super().finish()
-
     def extra_state(self) -> dict:
         return {
-            "refitted": self.refitted,
             "gtn": None if self.gtn is None else self.gtn.state_dict(),
             "weather": {m.name: m.state_dict() for m in self.weather_models},
             "method_optimizers": {k: o.state_dict() for k, o in self.method_optimizers.items()},
@@ -1271,7 +1229,6 @@ class MeteGSTrainer(Trainer):
         }
 
     def load_extra_state(self, ckpt: dict) -> None:
-        self.refitted = bool(ckpt.get("refitted", False))
         if self._quantile_pending and ckpt.get("quantile") is not None:  # chosen before the checkpoint: keep it
             self._quantile_pending = False
             self._decide_quantile(*ckpt["quantile"])
