@@ -139,6 +139,11 @@ def direction_basis(degree: int, directions: torch.Tensor) -> torch.Tensor:
     return torch.stack(columns, dim=-1).reshape(*directions.shape[:-1], count - 1)
 
 
+def airlight_logit(airlight: torch.Tensor) -> torch.Tensor:
+    """[3] the learnable logit of an airlight [3], kept off 0 and 1 (where the logit is infinite)."""
+    return torch.logit(airlight.float().clamp(1e-3, 1 - 1e-3))
+
+
 def patch_grid(cameras, cells: int) -> tuple[int, int, int]:
     """(views, rows, columns) of a per-view grid with ``cells`` along the longer image side (0: an empty grid)."""
     if cells <= 0:
@@ -160,7 +165,7 @@ class FogAnalytic(WeatherModel):
         self.config = config
         beta = fog_extinction_rgb(theta, config.include_rain_veil).float()
         self._active = fog_called_for(theta, config.include_rain_veil)
-        a = choose_airlight(config.airlight, theta, scene).clamp(1e-3, 1 - 1e-3)
+        a = choose_airlight(config.airlight, theta, scene)
         self.log_beta = torch.nn.Parameter(torch.log(beta.clamp_min(1e-12)), requires_grad=config.learnable)
         # θ's β for the prior: moves with the model, stays out of checkpoints (their keys are unchanged)
         self.register_buffer("record_log_beta", self.log_beta.detach().clone(), persistent=False)
@@ -170,7 +175,7 @@ class FogAnalytic(WeatherModel):
         """β (1/m) the photos show at the scene's points, where the trainer measured it (`hold_at`)."""
         self.use_record_prior = config.record_prior == "on"
         """Whether `prior` holds β near θ's (the trainer decides ``auto`` from the views' distances)."""
-        self.airlight_logit = torch.nn.Parameter(torch.logit(a), requires_grad=config.learnable)
+        self.airlight_logit = torch.nn.Parameter(airlight_logit(a), requires_grad=config.learnable)
         self.height_rate = torch.nn.Parameter(torch.zeros(()), requires_grad=False)
         """100·k: ln β falls by this much per 100 m of height (0: uniform; learned by `learn_layers`; per 100 m so
         that an optimiser's steps of ~0.01 move it by a small fraction of a realistic 0.01-0.1 per metre)."""
@@ -199,7 +204,7 @@ class FogAnalytic(WeatherModel):
     def set_airlight(self, airlight: torch.Tensor) -> None:
         """Put the airlight at ``airlight`` [3] in (0, 1) (whether it learns on is left as it is)."""
         with torch.no_grad():
-            self.airlight_logit.copy_(torch.logit(airlight.float().clamp(1e-3, 1 - 1e-3)).to(self.airlight_logit))
+            self.airlight_logit.copy_(airlight_logit(airlight).to(self.airlight_logit))
 
     def learn_layers(self) -> bool:
         """Let β change with height from now on, when ``layered`` and ``learnable`` allow it -> whether it does."""
