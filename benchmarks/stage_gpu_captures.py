@@ -1,8 +1,9 @@
 """Stage configs/bench/real.yaml's captures for a lent GPU machine, which has no pycolmap and reaches nothing outside.
 
 Writes into .gpu/ (ignored by git; carry it with the run): the Ethiopian head (LLFF), the instant-ngp fox (undistorted
-here) and the Lund street (COLMAP) as nerfstudio ``transforms.json`` scenes with their own train/test split, the fox
-and Lund at half their size (the training size is the same: both train at their power-of-two downscale under 640 px),
+here), the Lund street and the kitchen (COLMAP) as nerfstudio ``transforms.json`` scenes with their own train/test
+split, the fox and Lund at half their size (the training size is the same: both train at their power-of-two downscale
+under 640 px), the kitchen at its own (its grid's fixed downscale 3 sets its training size),
 each world turned so that metegs's own up estimate is +Z, the capture's own sparse points where it has them (Lund's SfM
 points) and none where it has none, so that each GPU run triangulates from the photos it trains on and chooses its
 start (those points or a plane sweep) as a CPU run does (carry the pycolmap wheel: without it a run has no points to
@@ -31,7 +32,7 @@ import yaml
 from PIL import Image
 
 ROOT = Path(__file__).resolve().parents[1]
-FOLDERS = ("ethiopianhead-llff", "fox", "lund")  # the staged folders of real.yaml's scenes, in its order
+FOLDERS = ("ethiopianhead-llff", "fox", "lund", "kitchen")  # the staged folders of real.yaml's scenes, in its order
 RECORDS = (
     "meteo/beijing-prsa/PRSA_Data_Aotizhongxin_20130301-20170228.csv",
     "meteo/isd-janmayen-1988/DS3505.txt",
@@ -147,6 +148,7 @@ def main() -> None:
         "ethiopianhead-llff": (args.shared / "data/scenes/ethiopianhead-llff", 1),
         "fox": (args.captures / "fox-instant-ngp/data/nerf/fox", 2),
         "lund": (args.captures / "opensfm-lund/scene", 2),
+        "kitchen": (args.captures / "vggsfm-kitchen/scene", 1),  # its grid's downscale 3 then trains at 519 px
     }
     for folder in args.scenes:
         src, shrink = captures[folder]
