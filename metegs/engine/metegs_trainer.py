@@ -539,7 +539,7 @@ class MeteGSTrainer(Trainer):
         if not fog.log_beta.requires_grad:
             return
         measurable, seen = self._views_measure_medium
-        dark = self._decide_dark_channel(fog, measurable, seen, self._dense_fog_alone())
+        dark = self._decide_dark_channel(fog, measurable, seen, self._dense_fog())
         mode, beta = fog.config.record_prior, f"{float(fog.record_log_beta.exp().mean()):.2e}/m"
         flat = "off: where the photos cannot measure β they cannot tell how it varies"
         if mode != "auto":
@@ -805,30 +805,32 @@ class MeteGSTrainer(Trainer):
             return None
         return f"{rain_phrase(theta.rain)} through fog, seen from distances {spread:.2f}x apart"
 
-    def _dense_fog_alone(self) -> str | None:
-        """Blind, a medium dense at the scene's typical depth (`DENSE_OPTICAL_DEPTH`) that no rain heavier than light
-        falls through: its optical depth in words, else None."""
-        if self.use_clean or self._rain_through_dense_fog():
+    def _dense_fog(self) -> str | None:
+        """Blind, where the record gives a visibility, a medium dense at the scene's typical depth
+        (`DENSE_OPTICAL_DEPTH`): its optical depth in words, else None."""
+        if self.use_clean or self._rain_veil_too_thin() is not None:
             return None
         return self._dense_medium()
 
     def _decide_dark_channel(self, fog: FogAnalytic, measurable: bool, seen: str, dense: str | None) -> bool:
         """Whether the dark-channel prior holds ``fog`` (then it joins `dehazing`): blind training only, and with
-        ``mode`` auto where the photos cannot measure β themselves, or where the fog is ``dense`` (`_dense_fog_alone`)
-        and their measure at the scene's points does not hold it (`_held_measure`). A scene without near-black patches
-        (the built-in one's grey ground, dark channel J ≈ 0.13) biases the veil the prior reads by J·t against a veil of
-        1 − t: in thin media that swamps it (the built-in scene's default weather, 7.6 dB lost), in dense fog less; but
-        the photos hold β times the rendered distance, so as the prior raises β the Gaussians move in: the built-in
-        scene in its own 200 m fog ended at 0.020-0.022/m (exact 0.0150) with the test views' near surfaces rendered at
-        0.69 of their distance (0.97 held at the points' 0.0150; `benchmarks/fog_error_by_distance.py`). Held at
-        the measure, 3000 steps on the Lund street (28 photos) scored 12.71 dB in metegs's own 200 m fog and 13.52 in
-        the independent (10.19 and 12.17 under this prior), the built-in scene in independent 200 m fog 18.68 (16.23);
-        its own fog 13.93 against 17.40, lost behind its sky dome, over 200 m off and seen through 2-5 % of its light,
-        whose colour no β recovers. The fox's optical depth of 0.76 stays off, where forced on it cost 1.6 dB. Rain
-        through the dense fog keeps the record prior instead (`_rain_through_dense_fog`): against this prior it won
-        three of the four cells it decides by 2.11-3.23 dB (the Lund street and the kitchen, metegs's own and the
-        independent rain + fog) and lost the kitchen's independent one, whose fog is 3.5x thinner at the cameras than
-        the record's, by 2.98."""
+        ``mode`` auto where the photos cannot measure β themselves, or where the fog is ``dense`` (`_dense_fog`) and
+        their measure at the scene's points does not hold it (`_held_measure`), rain or not. A scene without near-black
+        patches (the built-in one's grey ground, dark channel J ≈ 0.13) biases the veil the prior reads by J·t against a
+        veil of 1 − t: in thin media that swamps it (the built-in scene's default weather, 7.6 dB lost), in dense fog
+        less; but the photos hold β times the rendered distance, so as the prior raises β the Gaussians move in: the
+        built-in scene in its own 200 m fog ended at 0.020-0.022/m (exact 0.0150) with the test views' near surfaces
+        rendered at 0.69 of their distance (0.97 held at the points' 0.0150; `benchmarks/fog_error_by_distance.py`).
+        Held at the measure, 3000 steps on the Lund street (28 photos) scored 12.71 dB in metegs's own 200 m fog and
+        13.52 in the independent (10.19 and 12.17 under this prior), the built-in scene in independent 200 m fog 18.68
+        (16.23); its own fog 13.93 against 17.40, lost behind its sky dome, over 200 m off and seen through 2-5 % of its
+        light, whose colour no β recovers. The fox's optical depth of 0.76 stays off, where forced on it cost 1.6 dB.
+        Under rain through the dense fog, where the points' measure holds, the record prior holds β instead
+        (`_rain_through_dense_fog`): against this prior it won by 2.11-3.23 dB on the Lund street (metegs's own and the
+        independent rain + fog, uniform media explaining 43 % and 11 % at the points) and in the kitchen's own (32 %).
+        Where the measure does not hold, the photos do not bear the record's fog out: the kitchen's independent rain +
+        fog (3.4 % explained; its height fog is 3.5x thinner at the cameras than the record's) scored 14.23 dB under
+        this prior, 11.25 under the record's β."""
         c = self.config.dark_channel
         if self.use_clean:
             on, why = False, "off: the clean references measure the medium"
@@ -838,16 +840,26 @@ class MeteGSTrainer(Trainer):
             on, why = True, "on (--dark-channel.mode on)"
         elif measurable and dense and (fit := self._held_measure()) is not None:
             on = False
+            rain = self._rain_through_dense_fog()
             why = (
                 f"off: {seen}, and though {dense} (visibility under 3x that depth), the photos measure β "
-                f"{fit.beta_per_m:.2e}/m at the scene's points (--dark-channel.mode on adds it)"
+                f"{fit.beta_per_m:.2e}/m at the scene's points"
+                + (f", which bear the record's fog out (under {rain} its β holds the medium)" if rain else "")
+                + " (--dark-channel.mode on adds it)"
             )
         elif measurable and dense:
             on = True
+            rain = self._rain_through_dense_fog()
             why = (
                 f"on: {seen}, but {dense} (visibility under 3x that depth) and the photos' colours at the scene's "
-                "points do not measure it: a scene without near-black patches biases the veil this prior reads by its "
-                "own dark channel times the transmission, small there"
+                "points do not measure it"
+                + (
+                    f", so they do not bear the record's fog out and its β cannot hold the medium under {rain}"
+                    if rain
+                    else ""
+                )
+                + ": a scene without near-black patches biases the veil this prior reads by its own dark channel "
+                "times the transmission, small there"
             )
         elif measurable:
             on, why = False, f"off: {seen}: the photos measure β (--dark-channel.mode on adds it)"

@@ -163,8 +163,10 @@ def test_the_airlight_learns_its_directions_only_where_the_views_see_the_scene_a
 
 def test_blind_the_record_holds_beta_where_heavy_rain_falls_through_dense_fog(tmp_path):
     """The built-in scene's views measure β (the test above), but heavy rain through dense fog adds light that
-    differs per view: blind, β stays near the record's; clean references measure it, and it stays free."""
-    conditions = ConditionsConfig(precip_mm_h=20.0, visibility_m=150.0, metres_per_unit=100.0)
+    differs per view: blind, where the scene's points bear the record's fog out (a uniform medium explains 12 % there;
+    in fog too dense to see the scene through they cannot, and the dark channel holds it), β stays near the record's;
+    clean references measure it, and it stays free."""
+    conditions = ConditionsConfig(precip_mm_h=20.0, visibility_m=300.0, metres_per_unit=100.0)
     blind = tiny_metegs(tmp_path / "blind", conditions=conditions, clean_supervision=False, max_steps=1).setup()
     assert blind.decisions["fog-analytic prior"].startswith("on (weight 0.1): the views see a scene point from")
     assert "heavy rain (20 mm/h) through dense fog" in blind.decisions["fog-analytic prior"]
@@ -175,7 +177,9 @@ def test_blind_the_record_holds_beta_where_heavy_rain_falls_through_dense_fog(tm
     assert refs.decisions["fog-analytic prior"].startswith("off: the views see a scene point from")
     light = replace(conditions, precip_mm_h=1.0)
     blind = tiny_metegs(tmp_path / "light", conditions=light, clean_supervision=False, max_steps=1).setup()
-    assert blind.decisions["fog-analytic prior"].startswith("off:")  # light rain: the photos measure β
+    # light rain: the photos measure β, and β is held at their measure, not the record's
+    assert "the photos measure β" in blind.decisions["fog-analytic prior"]
+    assert "through dense fog" not in blind.decisions["fog-analytic prior"]
 
 
 @pytest.mark.parametrize("height_rate", [2.0, -2.0])
@@ -245,11 +249,20 @@ def test_the_dark_channel_prior_holds_the_fog_where_blind_photos_cannot_measure_
     )
     assert not held.airlight_logit.requires_grad
     monkeypatch.undo()
-    # heavy rain through it keeps the record prior (the Lund street, independent rain + fog: 12.34 dB, 11.98 with it)
-    rainy = tiny_metegs(
-        tmp_path / "rainy", conditions=replace(thick, precip_mm_h=20.0), max_steps=1, clean_supervision=False
-    ).setup()
+    # heavy rain through it keeps the record prior where the points bear that fog out (the Lund street, independent
+    # rain + fog: 13.36 dB, 11.22 with the dark channel) ...
+    rain = replace(thick, precip_mm_h=20.0)
+    rainy = tiny_metegs(tmp_path / "rainy", conditions=rain, max_steps=1, clean_supervision=False).setup()
     assert rainy.dehazing == [] and rainy.decisions["fog-analytic prior"].startswith("on (weight 0.1)")
+    assert "which bear the record's fog out" in rainy.decisions["dark channel prior"]
+    # ... and the dark channel holds it where they do not (the kitchen's independent rain + fog, whose fog is 3.5x
+    # thinner at the cameras than the record's: 14.23 dB, 11.25 under the record's β)
+    monkeypatch.setattr("metegs.engine.metegs_trainer.MIN_MEDIUM_EXPLAINED", 1.01)
+    unborne = tiny_metegs(tmp_path / "unborne", conditions=rain, max_steps=1, clean_supervision=False).setup()
+    assert len(unborne.dehazing) == 1 and unborne.decisions["fog-analytic prior"].startswith("off: the dark channel")
+    assert "do not bear the record's fog out" in unborne.decisions["dark channel prior"]
+    assert "heavy rain (20 mm/h)" in unborne.decisions["dark channel prior"]
+    monkeypatch.undo()
     # random points fill the views' overlap and say nothing of the scene's distances: the prior holds the fog there
     # (the instant-ngp fox under independent rain + fog, 4 points triangulated: 16.71 dB with it, 15.15 without)
     scattered = tiny_metegs(
