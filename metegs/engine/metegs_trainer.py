@@ -518,24 +518,24 @@ class MeteGSTrainer(Trainer):
 
     def _decide_record_prior(self, name: str, fog: FogAnalytic) -> None:
         """What sets ``fog``'s β where the photometric fit alone cannot: ``auto`` asks if the views see the scene's
-        (initial) points over distances far enough apart for the photos to measure β
-        (`MEASURABLE_DISTANCE_SPREAD`; unknown, so not, from random points or a sweep where triangulation failed);
-        where they are not, or the fog alone is dense and the points do not measure it, blind training holds it by the
-        dark-channel prior (`_decide_dark_channel`), training with clean references (or with that prior off) near the
-        met record's. Blind under rain heavier than light through dense fog the record holds it wherever the views are
-        (`_rain_through_dense_fog`). Elsewhere blind, where they are, the photos' colours at the starting points
-        measure it (`_measured_medium`), and where that measure explains enough of them (`MIN_MEDIUM_EXPLAINED`) the
-        prior holds it there: left free, it drifts while the Gaussians take the haze in (the fox in metegs's own 200 m
-        fog: from the exact 0.0150/m to 0.011 within 1000 steps, 17.34 dB; held at the measure of 0.0153, 24.16).
-        Under the dark-channel prior, or beside clean references where the views do not measure β, a per-view grid
-        scales the optical depth (`FogAnalytic.learn_patches`), but not blind in the rain's veil alone (no visibility
-        in the record), where it takes in the rain's light: the Ethiopian head's blind heavy rain gained 0.56-0.67 dB
-        without it (metegs's own, two seeds) and 0.17-0.27 (the independent family's). Under that prior, where rain
-        heavier than light falls through the record's fog and the views see the scene from about one distance
+        (initial) points over distances far enough apart for the photos to measure β (`MEASURABLE_DISTANCE_SPREAD`;
+        unknown, so not, from random points or a sweep where triangulation failed); where they are not, or the fog is
+        dense (rain or not) and the points do not measure it, blind training holds it by the dark-channel prior
+        (`_decide_dark_channel`), training with clean references (or with that prior off) near the met record's. Blind
+        under rain heavier than light through dense fog that the points do measure, the record holds it
+        (`_rain_through_dense_fog`). Elsewhere blind, where they are, the photos' colours at the starting points measure
+        it (`_measured_medium`), and where that measure explains enough of them (`MIN_MEDIUM_EXPLAINED`) the prior holds
+        it there: left free, it drifts while the Gaussians take the haze in (the fox in metegs's own 200 m fog: from the
+        exact 0.0150/m to 0.011 within 1000 steps, 17.34 dB; held at the measure of 0.0153, 24.16). Under the
+        dark-channel prior, or beside clean references where the views do not measure β, a per-view grid scales the
+        optical depth (`FogAnalytic.learn_patches`), but not blind in the rain's veil alone (no visibility in the
+        record), where it takes in the rain's light: the Ethiopian head's blind heavy rain gained 0.56-0.67 dB without
+        it (metegs's own, two seeds) and 0.17-0.27 (the independent family's). Under that prior, where rain heavier than
+        light falls through the record's fog and the views see the scene from about one distance
         (`_rain_through_fog_seen_from_one_distance`), neither the grid nor β's height profile learns: they take each
         view's rain light for fog (the Ethiopian head, blind, 3000 steps: a uniform fog 15.52 ± 0.15 dB over three seeds
-        under the independent rain + fog against 14.91 ± 0.40, 22.23 against 21.61 under metegs's own), where the
-        fox's views, 2.15x apart, measure them (18.26 dB with both, 15.37 uniform)."""
+        under the independent rain + fog against 14.91 ± 0.40, 22.23 against 21.61 under metegs's own), where the fox's
+        views, 2.15x apart, measure them (18.26 dB with both, 15.37 uniform)."""
         if not fog.log_beta.requires_grad:
             return
         measurable, seen = self._views_measure_medium
