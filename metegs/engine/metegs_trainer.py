@@ -832,6 +832,7 @@ class MeteGSTrainer(Trainer):
         fog (3.4 % explained; its height fog is 3.5x thinner at the cameras than the record's) scored 14.23 dB under
         this prior, 11.25 under the record's β."""
         c = self.config.dark_channel
+        rain = self._rain_through_dense_fog() if measurable and dense else None
         if self.use_clean:
             on, why = False, "off: the clean references measure the medium"
         elif c.weight <= 0 or c.mode == "off":
@@ -840,7 +841,6 @@ class MeteGSTrainer(Trainer):
             on, why = True, "on (--dark-channel.mode on)"
         elif measurable and dense and (fit := self._held_measure()) is not None:
             on = False
-            rain = self._rain_through_dense_fog()
             why = (
                 f"off: {seen}, and though {dense} (visibility under 3x that depth), the photos measure β "
                 f"{fit.beta_per_m:.2e}/m at the scene's points"
@@ -849,7 +849,6 @@ class MeteGSTrainer(Trainer):
             )
         elif measurable and dense:
             on = True
-            rain = self._rain_through_dense_fog()
             why = (
                 f"on: {seen}, but {dense} (visibility under 3x that depth) and the photos' colours at the scene's "
                 "points do not measure it"
