@@ -21,12 +21,12 @@ from pathlib import Path
 import torch
 
 
-def near_camera(run: Path, view: int, fraction: float) -> dict:
-    """The Gaussians nearer than ``fraction`` of test view ``view``'s median depth in ``run``, and that view's cost."""
+def near_camera(trainer, view: int, fraction: float) -> dict:
+    """The Gaussians nearer than ``fraction`` of test view ``view``'s median depth in a loaded run (`load_run`), and
+    what they cost the test views; they stay hidden in ``trainer`` afterwards."""
     from metegs.densify.camera_clearance import camera_spacing
-    from metegs.engine.run import evaluate_run, load_run, surface_depth
+    from metegs.engine.run import evaluate_run, surface_depth
 
-    trainer = load_run(run)
     ds = trainer.dataset
     train, camera = list(ds.train_indices), ds.cameras[[list(ds.test_indices)[view]]]
     gaussians = trainer.model.activated()
@@ -54,7 +54,6 @@ def near_camera(run: Path, view: int, fraction: float) -> dict:
     after = evaluate_run(trainer)["per_view"]["psnr"]
     centers = train_cameras.centers
     return {
-        "run": str(run),
         "method": trainer.config.method,
         "view": view,
         "camera_spacings_from_training": float((centers - camera.centers).norm(dim=1).min()) / camera_spacing(centers),
@@ -75,7 +74,9 @@ def main() -> None:
     parser.add_argument("--fraction", type=float, default=0.25, help="nearer than this share of its median depth")
     parser.add_argument("--json", type=Path, default=None, help="also write the rows here")
     args = parser.parse_args()
-    rows = [near_camera(run, args.view, args.fraction) for run in args.runs]
+    from metegs.engine.run import load_run
+
+    rows = [{"run": str(run), **near_camera(load_run(run), args.view, args.fraction)} for run in args.runs]
     for r in rows:
         share = r["depth_share_in_training_views"]
         print(
